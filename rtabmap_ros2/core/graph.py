@@ -1,0 +1,185 @@
+"""The map's graph (2014 §II): nodes joined by typed links carrying rigid transforms.
+
+A :class:`Link` from ``from_id`` to ``to_id`` holds ``T_from_to`` such that
+``pose_to = pose_from @ T_from_to`` (poses are ``T_map_base``), and a 6x6 information matrix over
+(x, y, z, roll, pitch, yaw). Neighbour links join consecutive nodes of one session (odometry);
+loop closure links are intra-session or inter-session.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Iterable, Mapping
+
+import numpy as np
+
+from rtabmap_ros2.core import transforms
+
+
+class LinkType(str, Enum):
+    """Link types, spelled as in ``links.csv``."""
+
+    NEIGHBOR = "neighbor"
+    LOOP_INTRA = "loop_intra"
+    LOOP_INTER = "loop_inter"
+
+    @property
+    def is_loop_closure(self) -> bool:
+        return self is not LinkType.NEIGHBOR
+
+
+def loop_type(map_id_a: int, map_id_b: int) -> LinkType:
+    """Intra-session or inter-session loop closure type for two nodes' map ids."""
+    return LinkType.LOOP_INTRA if map_id_a == map_id_b else LinkType.LOOP_INTER
+
+
+def default_information(variance: float) -> np.ndarray:
+    """Diagonal 6x6 information matrix for one variance on every axis."""
+    return np.eye(6) / variance
+
+
+@dataclass(frozen=True)
+class Link:
+    """A rigid constraint between two nodes (``pose_to = pose_from @ T_from_to``)."""
+
+    from_id: int
+    to_id: int
+    type: LinkType
+    T_from_to: np.ndarray = field(default_factory=transforms.identity)
+    information: np.ndarray = field(default_factory=lambda: default_information(1e-3))
+
+    def inverted(self) -> "Link":
+        """The same constraint seen from the other end."""
+        return Link(self.to_id, self.from_id, self.type, transforms.inverse(self.T_from_to), self.information)
+
+    def key(self) -> tuple[int, int]:
+        """Order-independent identity of the link."""
+        return (min(self.from_id, self.to_id), max(self.from_id, self.to_id))
+
+    def other(self, node_id: int) -> int:
+        """The node at the other end."""
+        return self.to_id if node_id == self.from_id else self.from_id
+
+    def oriented_from(self, node_id: int) -> "Link":
+        """This link with ``from_id == node_id``."""
+        return self if node_id == self.from_id else self.inverted()
+
+
+class Graph:
+    """Adjacency of every node and link (WM and LTM); small: ids, types and transforms only."""
+
+    def __init__(self, links: Iterable[Link] = ()) -> None:
+        self._adjacency: dict[int, dict[int, Link]] = {}
+        for link in links:
+            self.add_link(link)
+
+    def add_node(self, node_id: int) -> None:
+        self._adjacency.setdefault(node_id, {})
+
+    def add_link(self, link: Link) -> None:
+        """Add (or replace) the link between two nodes."""
+        self._adjacency.setdefault(link.from_id, {})[link.to_id] = link
+        self._adjacency.setdefault(link.to_id, {})[link.from_id] = link
+
+    def remove_link(self, a: int, b: int) -> None:
+        self._adjacency.get(a, {}).pop(b, None)
+        self._adjacency.get(b, {}).pop(a, None)
+
+    def remove_node(self, node_id: int) -> list[Link]:
+        """Remove a node and return its links (oriented from it)."""
+        links = [link.oriented_from(node_id) for link in self._adjacency.pop(node_id, {}).values()]
+        for link in links:
+            self._adjacency.get(link.to_id, {}).pop(node_id, None)
+        return links
+
+    def __contains__(self, node_id: int) -> bool:
+        return node_id in self._adjacency
+
+    def __len__(self) -> int:
+        return len(self._adjacency)
+
+    def nodes(self) -> list[int]:
+        return list(self._adjacency)
+
+    def links_of(self, node_id: int) -> list[Link]:
+        """Links of a node, oriented from it."""
+        return [link.oriented_from(node_id) for link in self._adjacency.get(node_id, {}).values()]
+
+    def link(self, a: int, b: int) -> Link | None:
+        link = self._adjacency.get(a, {}).get(b)
+        return None if link is None else link.oriented_from(a)
+
+    def neighbors(self, node_id: int, types: Iterable[LinkType] | None = None) -> list[int]:
+        wanted = None if types is None else set(types)
+        return [other for other, link in self._adjacency.get(node_id, {}).items()
+                if wanted is None or link.type in wanted]
+
+    def links(self) -> list[Link]:
+        """Every link once."""
+        seen: dict[tuple[int, int], Link] = {}
+        for adjacent in self._adjacency.values():
+            for link in adjacent.values():
+                seen.setdefault(link.key(), link)
+        return list(seen.values())
+
+    def hops_from(self, start: int, max_hops: int, types: Iterable[LinkType] | None = None,
+                  allowed: Mapping[int, object] | set[int] | None = None) -> dict[int, int]:
+        """Breadth-first hop distance to every node within ``max_hops`` (start included, at 0)."""
+        wanted = None if types is None else set(types)
+        dist = {start: 0}
+        queue = deque([start])
+        while queue:
+            node = queue.popleft()
+            d = dist[node]
+            if d >= max_hops:
+                continue
+            for other, link in self._adjacency.get(node, {}).items():
+                if other in dist or (wanted is not None and link.type not in wanted):
+                    continue
+                if allowed is not None and other not in allowed:
+                    continue
+                dist[other] = d + 1
+                queue.append(other)
+        return dist
+
+    def component(self, start: int, allowed: Mapping[int, object] | set[int] | None = None) -> set[int]:
+        """Nodes connected to ``start`` (through ``allowed`` nodes only, if given)."""
+        return set(self.hops_from(start, max_hops=1 << 30, allowed=allowed))
+
+
+def connected_components(node_ids: Iterable[int], links: Iterable[Link]) -> list[set[int]]:
+    """Connected components of a node set, largest first."""
+    graph = Graph(links)
+    remaining = set(node_ids)
+    for node in remaining:
+        graph.add_node(node)
+    components = []
+    while remaining:
+        start = next(iter(remaining))
+        comp = graph.component(start, allowed=remaining)
+        components.append(comp)
+        remaining -= comp
+    components.sort(key=len, reverse=True)
+    return components
+
+
+def chain_poses(root_id: int, root_pose: np.ndarray, links: Iterable[Link]) -> dict[int, np.ndarray]:
+    """Initial guess of every pose connected to the root by composing links breadth-first.
+
+    Nodes of several sessions (each with its own odometry origin) get poses in one frame, the
+    root's (2014 §II-B: the root is the newest node, always uniquely defined). Neighbour links are
+    preferred over loop closures so odometry shapes the guess.
+    """
+    graph = Graph(links)
+    poses = {root_id: np.asarray(root_pose, dtype=float)}
+    queue = deque([root_id])
+    while queue:
+        node = queue.popleft()
+        ordered = sorted(graph.links_of(node), key=lambda l: l.type is not LinkType.NEIGHBOR)
+        for link in ordered:
+            if link.to_id not in poses:
+                poses[link.to_id] = poses[node] @ link.T_from_to
+                queue.append(link.to_id)
+    return poses

@@ -1,0 +1,487 @@
+"""Typed parameters: one frozen dataclass per module, nested in :class:`Params`.
+
+Defaults are the papers' values (Labbé & Michaud 2013, Table I; 2014, §III) unless the field's doc
+says why not. Every field has ``metadata={"doc": ..., "unit": ...}``; the ROS node declares one
+parameter per field from that metadata, and the command line accepts the same names.
+
+Names accepted when loading (``Params.from_mapping``, ``Params.with_overrides``):
+
+* dotted names, ``memory.stm_size``;
+* RTAB-Map's own names through :data:`RTABMAP_ALIASES` (``Mem/STMSize``, ``Rtabmap/TimeThr``...);
+* the node's plain names (``database_path``, ``frame_id``...) for the fields of :class:`NodeParams`,
+  and ``detection_rate``, ``approx_sync``, ``sync_queue_size`` for the synchroniser.
+
+Unknown names raise :class:`~rtabmap_ros2.errors.ParameterError`; YAML is read with ``safe_load``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import yaml
+
+from rtabmap_ros2.errors import ParameterError
+
+
+def _p(default: Any, doc: str, unit: str = "") -> Any:
+    """A dataclass field with its doc and unit in the metadata."""
+    return field(default=default, metadata={"doc": doc, "unit": unit})
+
+
+def _check(condition: bool, name: str, value: Any, expected: str) -> None:
+    if not condition:
+        raise ParameterError(f"{name}={value!r} is invalid: expected {expected}")
+
+
+@dataclass(frozen=True)
+class FeatureParams:
+    """Location creation (2013 §III-A, Alg. 2): keypoints and descriptors of an image."""
+
+    detector: str = _p(
+        "gftt_orb",
+        "Detector/descriptor: gftt_orb (GFTT corners + ORB descriptors, RTAB-Map's "
+        "Kp/DetectorStrategy=8), orb, sift. SURF (the paper's) is patented and absent from "
+        "OpenCV wheels; gftt_orb was chosen by bench/bench_features.py.",
+    )
+    max_features: int = _p(400, "T_maxFeatures: keep at most this many strongest features (0 = all)")
+    response_threshold: float = _p(
+        0.0, "T_response: minimum detector response of a feature (detector-specific scale)"
+    )
+    roi_ratios: tuple[float, float, float, float] = _p(
+        (0.0, 0.0, 0.0, 0.0),
+        "Region of interest as ratios of the image cut off at left, right, top, bottom "
+        "(the 2013 NFSMW experiment used 0 0 0.1 0.4)",
+        "ratio",
+    )
+
+    def __post_init__(self) -> None:
+        _check(self.detector in ("gftt_orb", "orb", "sift"), "features.detector", self.detector,
+               "one of gftt_orb, orb, sift")
+        _check(self.max_features >= 0, "features.max_features", self.max_features, ">= 0")
+        _check(len(self.roi_ratios) == 4 and all(0.0 <= r < 1.0 for r in self.roi_ratios)
+               and self.roi_ratios[0] + self.roi_ratios[1] < 1.0
+               and self.roi_ratios[2] + self.roi_ratios[3] < 1.0,
+               "features.roi_ratios", self.roi_ratios, "4 ratios in [0, 1) leaving part of the image")
+
+
+@dataclass(frozen=True)
+class VocabularyParams:
+    """Incremental visual vocabulary (2013 §III-A): 2-NN quantisation with the NNDR test."""
+
+    nndr: float = _p(0.8, "T_NNDR: a descriptor matches its nearest word if d1 < T_NNDR * d2", "ratio")
+    index: str = _p(
+        "auto",
+        "Nearest-neighbour index: flat (exact brute force), ivf (inverted file, incremental add/"
+        "remove), auto (flat until ivf_min_words words, then ivf)",
+    )
+    ivf_min_words: int = _p(20000, "auto: switch from the exact flat index to IVF at this size", "words")
+    ivf_nprobe: int = _p(32, "IVF: number of inverted lists visited per query")
+    ivf_retrain_growth: float = _p(
+        4.0, "IVF: retrain the coarse quantiser when the vocabulary grew by this factor since the "
+        "last training", "ratio")
+
+    def __post_init__(self) -> None:
+        _check(0.0 < self.nndr <= 1.0, "vocabulary.nndr", self.nndr, "in (0, 1]")
+        _check(self.index in ("auto", "flat", "ivf"), "vocabulary.index", self.index, "auto, flat or ivf")
+        _check(self.ivf_min_words >= 1000, "vocabulary.ivf_min_words", self.ivf_min_words, ">= 1000")
+        _check(self.ivf_nprobe >= 1, "vocabulary.ivf_nprobe", self.ivf_nprobe, ">= 1")
+        _check(self.ivf_retrain_growth > 1.0, "vocabulary.ivf_retrain_growth", self.ivf_retrain_growth, "> 1")
+
+
+@dataclass(frozen=True)
+class MemoryParams:
+    """STM / WM / LTM management (2013 §III-B, E, F; 2014 §II-C)."""
+
+    stm_size: int = _p(30, "T_STM: number of locations in Short-Term Memory", "locations")
+    rehearsal_similarity: float = _p(
+        0.20, "T_similarity: merge the new location with the previous one if Eq. 1 is above this", "ratio"
+    )
+    recent_wm_ratio: float = _p(
+        0.20, "T_recent: part of WM after the last loop closure that is protected from transfer", "ratio"
+    )
+    bad_signature_ratio: float = _p(
+        0.25, "T_bad: a signature with fewer words than T_bad x the average is a bad signature", "ratio"
+    )
+    time_threshold_ms: float = _p(
+        700.0, "T_time: transfer WM -> LTM when the processing time exceeds it (0 = no limit)", "ms"
+    )
+    max_retrieved: int = _p(2, "Locations retrieved from LTM per frame (Alg. 3)", "locations")
+    keep_one_node_per_session: bool = _p(
+        True, "Never transfer the last WM node of a session, so no map is orphaned (2014 §IV)"
+    )
+
+    def __post_init__(self) -> None:
+        _check(self.stm_size >= 1, "memory.stm_size", self.stm_size, ">= 1")
+        _check(0.0 <= self.rehearsal_similarity <= 1.0, "memory.rehearsal_similarity",
+               self.rehearsal_similarity, "in [0, 1]")
+        _check(0.0 <= self.recent_wm_ratio <= 1.0, "memory.recent_wm_ratio", self.recent_wm_ratio, "in [0, 1]")
+        _check(0.0 <= self.bad_signature_ratio <= 1.0, "memory.bad_signature_ratio",
+               self.bad_signature_ratio, "in [0, 1]")
+        _check(self.time_threshold_ms >= 0.0, "memory.time_threshold_ms", self.time_threshold_ms, ">= 0")
+        _check(self.max_retrieved >= 0, "memory.max_retrieved", self.max_retrieved, ">= 0")
+
+
+@dataclass(frozen=True)
+class BayesParams:
+    """Discrete Bayes filter and hypothesis selection (2013 §III-C, D)."""
+
+    loop_threshold: float = _p(
+        0.11, "T_loop: accept the highest loop closure hypothesis when its posterior is at least "
+        "this (RTAB-Map's implementation of §III-D; 2014: H = 0.11)", "probability")
+    sigma: float = _p(1.6, "Std. deviation of the discretised Gaussian of the transition model", "locations")
+    neighborhood: int = _p(16, "Neighbours (graph hops) reached by the transition model", "locations")
+    virtual_place_prior: float = _p(0.9, "p(S_t=-1 | S_t-1=-1), the new-location persistence", "probability")
+    loop_closure_prior: float = _p(0.9, "Sum of p(S_t>=0 | S_t-1=j) over the neighbourhood of j", "probability")
+
+    def __post_init__(self) -> None:
+        _check(0.0 <= self.loop_threshold <= 1.0, "bayes.loop_threshold", self.loop_threshold, "in [0, 1]")
+        _check(self.sigma > 0.0, "bayes.sigma", self.sigma, "> 0")
+        _check(self.neighborhood >= 0, "bayes.neighborhood", self.neighborhood, ">= 0")
+        _check(0.0 < self.virtual_place_prior < 1.0, "bayes.virtual_place_prior", self.virtual_place_prior,
+               "in (0, 1)")
+        _check(0.0 < self.loop_closure_prior < 1.0, "bayes.loop_closure_prior", self.loop_closure_prior,
+               "in (0, 1)")
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Loop closure verification (2014 §II-A): RANSAC on 3D words, 2D ICP refinement."""
+
+    min_inliers: int = _p(20, "I: minimum RANSAC inliers to accept a loop closure (paper: 5; "
+                          "20 measured in bench/bench_registration.py to reject perceptual aliasing)")
+    inlier_distance: float = _p(0.1, "RANSAC inlier threshold on 3D word positions", "m")
+    ransac_iterations: int = _p(500, "RANSAC hypotheses", "iterations")
+    planar: bool = _p(True, "Robot moves on a plane: keep x, y, yaw only (Reg/Force3DoF)")
+    icp_refine: bool = _p(True, "Refine visual loop closures with 2D ICP on the laser scans")
+    icp_max_correspondence_distance: float = _p(0.3, "ICP: maximum point-to-line correspondence distance", "m")
+    icp_iterations: int = _p(30, "ICP: maximum iterations", "iterations")
+    icp_min_overlap: float = _p(0.5, "ICP: minimum ratio of scan points with a correspondence", "ratio")
+    icp_max_translation: float = _p(
+        0.5, "ICP: reject a refinement that moves the visual estimate by more than this", "m")
+
+    def __post_init__(self) -> None:
+        _check(self.min_inliers >= 3, "registration.min_inliers", self.min_inliers, ">= 3")
+        _check(self.inlier_distance > 0, "registration.inlier_distance", self.inlier_distance, "> 0")
+        _check(self.ransac_iterations >= 1, "registration.ransac_iterations", self.ransac_iterations, ">= 1")
+        _check(self.icp_max_correspondence_distance > 0, "registration.icp_max_correspondence_distance",
+               self.icp_max_correspondence_distance, "> 0")
+        _check(self.icp_iterations >= 1, "registration.icp_iterations", self.icp_iterations, ">= 1")
+        _check(0.0 <= self.icp_min_overlap <= 1.0, "registration.icp_min_overlap", self.icp_min_overlap,
+               "in [0, 1]")
+        _check(self.icp_max_translation > 0, "registration.icp_max_translation", self.icp_max_translation,
+               "> 0")
+
+
+@dataclass(frozen=True)
+class GraphParams:
+    """Graph SLAM (2014 §II-B, C): optimisation and sessions."""
+
+    optimizer: str = _p("lm", "Pose graph solver (gtsam): lm (Levenberg-Marquardt), gn (Gauss-Newton), "
+                        "dogleg")
+    iterations: int = _p(100, "Maximum optimiser iterations", "iterations")
+    robust: bool = _p(True, "Dynamic covariance scaling on loop closures; drop those it rejects")
+    robust_reject_scale: float = _p(
+        0.1, "Robust: a loop closure whose DCS scale ends below this is dropped as inconsistent", "ratio")
+    odom_reset_distance: float = _p(
+        0.05, "A new map starts when odometry jumps back within this distance of the origin after "
+        "moving away from it (odometry reset)", "m")
+    odom_reset_min_travel: float = _p(
+        0.5, "Odometry reset detection: the previous pose must be at least this far from the origin", "m")
+    odom_default_variance: float = _p(
+        1e-3, "Variance of neighbour links when odometry has no covariance", "m^2, rad^2")
+    loop_closure_variance: float = _p(1e-3, "Variance of loop closure links (before robust scaling)",
+                                      "m^2, rad^2")
+
+    def __post_init__(self) -> None:
+        _check(self.optimizer in ("lm", "gn", "dogleg"), "graph.optimizer", self.optimizer, "lm, gn or dogleg")
+        _check(self.iterations >= 1, "graph.iterations", self.iterations, ">= 1")
+        _check(0.0 < self.robust_reject_scale < 1.0, "graph.robust_reject_scale", self.robust_reject_scale,
+               "in (0, 1)")
+        _check(self.odom_reset_distance > 0, "graph.odom_reset_distance", self.odom_reset_distance, "> 0")
+        _check(self.odom_default_variance > 0, "graph.odom_default_variance", self.odom_default_variance, "> 0")
+        _check(self.loop_closure_variance > 0, "graph.loop_closure_variance", self.loop_closure_variance, "> 0")
+
+
+@dataclass(frozen=True)
+class GridParams:
+    """Occupancy grid (nav_msgs conventions) and assembled point cloud."""
+
+    resolution: float = _p(0.05, "Cell size of the occupancy grid", "m")
+    range_max: float = _p(0.0, "Ignore laser returns farther than this (0 = scan's range_max)", "m")
+    cloud_voxel_size: float = _p(0.05, "Voxel size of the assembled RGB-D point cloud", "m")
+    cloud_decimation: int = _p(4, "Use every n-th depth pixel in each direction for the point cloud", "px")
+
+    def __post_init__(self) -> None:
+        _check(self.resolution > 0, "grid.resolution", self.resolution, "> 0")
+        _check(self.range_max >= 0, "grid.range_max", self.range_max, ">= 0")
+        _check(self.cloud_voxel_size > 0, "grid.cloud_voxel_size", self.cloud_voxel_size, "> 0")
+        _check(self.cloud_decimation >= 1, "grid.cloud_decimation", self.cloud_decimation, ">= 1")
+
+
+@dataclass(frozen=True)
+class SyncParams:
+    """The one synchroniser shared by the bag reader and the node."""
+
+    rate_hz: float = _p(1.0, "Detection rate: at most one frame per period (0 = every set)", "Hz")
+    approx_sync: bool = _p(True, "Approximate time: nearest stamps within the tolerance (else equal stamps)")
+    tolerance_s: float = _p(0.1, "Largest stamp difference between the messages of one frame", "s")
+    queue_size: int = _p(10, "Messages buffered per topic while waiting for the others", "messages")
+
+    def __post_init__(self) -> None:
+        _check(self.rate_hz >= 0, "sync.rate_hz", self.rate_hz, ">= 0")
+        _check(self.tolerance_s >= 0, "sync.tolerance_s", self.tolerance_s, ">= 0")
+        _check(self.queue_size >= 1, "sync.queue_size", self.queue_size, ">= 1")
+
+
+@dataclass(frozen=True)
+class NodeParams:
+    """The ROS 2 node's own parameters (declared under their plain names, e.g. ``frame_id``)."""
+
+    database_path: str = _p("~/.ros/rtabmap_ros2.db", "Long-term memory database (reopened if it exists)")
+    delete_db_on_start: bool = _p(False, "Delete the database at start instead of continuing it")
+    frame_id: str = _p("base_link", "Robot base frame")
+    map_frame_id: str = _p("map", "Map frame of the published map")
+    odom_frame_id: str = _p("odom", "Odometry frame")
+    export_dir: str = _p("~/.ros/rtabmap_ros2_exports", "Folder of export_global_map's time-stamped exports")
+    subscribe_rgb: bool = _p(True, "Subscribe to rgb/image and rgb/camera_info")
+    subscribe_depth: bool = _p(True, "Subscribe to depth/image")
+    subscribe_scan: bool = _p(True, "Subscribe to scan")
+    qos: str = _p("sensor_data", "QoS of the subscriptions: sensor_data (best effort) or reliable")
+    topic_timeout_s: float = _p(5.0, "Warn once when an expected topic has been silent this long", "s")
+
+    def __post_init__(self) -> None:
+        _check(self.qos in ("sensor_data", "reliable"), "qos", self.qos, "sensor_data or reliable")
+        _check(self.topic_timeout_s > 0, "topic_timeout_s", self.topic_timeout_s, "> 0")
+
+
+@dataclass(frozen=True)
+class Params:
+    """All parameters, one section per module."""
+
+    features: FeatureParams = field(default_factory=FeatureParams)
+    vocabulary: VocabularyParams = field(default_factory=VocabularyParams)
+    memory: MemoryParams = field(default_factory=MemoryParams)
+    bayes: BayesParams = field(default_factory=BayesParams)
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    graph: GraphParams = field(default_factory=GraphParams)
+    grid: GridParams = field(default_factory=GridParams)
+    sync: SyncParams = field(default_factory=SyncParams)
+    node: NodeParams = field(default_factory=NodeParams)
+
+    # -- reading -------------------------------------------------------------------------------
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], base: "Params | None" = None) -> "Params":
+        """Parameters from a (possibly nested, possibly ROS ``ros__parameters``) mapping."""
+        params = base if base is not None else cls()
+        for name, value in _flatten(_unwrap_ros(values)).items():
+            params = params.with_value(name, value)
+        return params
+
+    @classmethod
+    def from_yaml(cls, path: str | os.PathLike, base: "Params | None" = None) -> "Params":
+        """Parameters from a YAML file (plain nested keys, or a ROS 2 parameter file)."""
+        path = Path(path).expanduser()
+        try:
+            text = path.read_text()
+        except OSError as exc:
+            raise ParameterError(f"cannot read parameter file {path}: {exc.strerror}") from exc
+        try:
+            data = yaml.safe_load(text) or {}
+        except yaml.YAMLError as exc:
+            raise ParameterError(f"parameter file {path} is not valid YAML: {exc}") from exc
+        if not isinstance(data, Mapping):
+            raise ParameterError(f"parameter file {path} must hold a mapping, not {type(data).__name__}")
+        return cls.from_mapping(data, base)
+
+    def with_overrides(self, assignments: list[str] | tuple[str, ...]) -> "Params":
+        """Apply ``NAME=VALUE`` strings (``--set`` on the command line); values are parsed as YAML."""
+        params = self
+        for text in assignments:
+            if "=" not in text:
+                raise ParameterError(f"--set {text!r}: expected NAME=VALUE, e.g. Mem/STMSize=30")
+            name, raw = text.split("=", 1)
+            try:
+                value = yaml.safe_load(raw) if raw.strip() else ""
+            except yaml.YAMLError:
+                value = raw
+            params = params.with_value(name.strip(), value)
+        return params
+
+    def with_value(self, name: str, value: Any) -> "Params":
+        """A copy with one parameter changed; ``name`` may be dotted, an RTAB-Map name or a node name."""
+        dotted, value = resolve_name(name, value)
+        section_name, field_name = dotted.split(".", 1)
+        section = getattr(self, section_name)
+        coerced = _coerce(dotted, getattr(section, field_name), value)
+        try:
+            new_section = replace(section, **{field_name: coerced})
+        except TypeError as exc:  # pragma: no cover - replace only fails on programming errors
+            raise ParameterError(f"{name}: {exc}") from exc
+        return replace(self, **{section_name: new_section})
+
+    # -- writing -------------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Nested plain dict (tuples as lists), suitable for YAML."""
+        out: dict[str, dict[str, Any]] = {}
+        for sec in fields(self):
+            section = getattr(self, sec.name)
+            out[sec.name] = {f.name: _plain(getattr(section, f.name)) for f in fields(section)}
+        return out
+
+    def to_yaml(self, path: str | os.PathLike) -> None:
+        """Write the parameters actually used (tools write them next to their results)."""
+        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+    def public_items(self) -> Iterator[tuple[str, Any, str, str]]:
+        """(public name, value, doc, unit) per field: ``section.field``, or ``field`` for the node."""
+        for sec in fields(self):
+            section = getattr(self, sec.name)
+            for f in fields(section):
+                public = f.name if sec.name == "node" else f"{sec.name}.{f.name}"
+                yield public, _plain(getattr(section, f.name)), f.metadata.get("doc", ""), f.metadata.get("unit", "")
+
+
+# RTAB-Map's parameter names -> (dotted name, conversion from RTAB-Map's unit to ours).
+RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
+    "Mem/STMSize": ("memory.stm_size", int),
+    "Mem/RehearsalSimilarity": ("memory.rehearsal_similarity", float),
+    "Mem/RecentWmRatio": ("memory.recent_wm_ratio", float),
+    "Kp/BadSignRatio": ("memory.bad_signature_ratio", float),
+    "Rtabmap/TimeThr": ("memory.time_threshold_ms", float),
+    "Rtabmap/MaxRetrieved": ("memory.max_retrieved", int),
+    "Rtabmap/LoopThr": ("bayes.loop_threshold", float),
+    "Kp/NndrRatio": ("vocabulary.nndr", float),
+    "Kp/MaxFeatures": ("features.max_features", int),
+    "Kp/DetectorStrategy": ("features.detector", lambda v: _DETECTOR_STRATEGIES.get(int(v), str(v))),
+    "Kp/RoiRatios": ("features.roi_ratios", lambda v: tuple(float(x) for x in str(v).split())),
+    "SURF/HessianThreshold": ("features.response_threshold", float),
+    "Vis/MinInliers": ("registration.min_inliers", int),
+    "Vis/InlierDistance": ("registration.inlier_distance", float),
+    "Vis/Iterations": ("registration.ransac_iterations", int),
+    "Reg/Force3DoF": ("registration.planar", lambda v: _to_bool("Reg/Force3DoF", v)),
+    "Icp/MaxCorrespondenceDistance": ("registration.icp_max_correspondence_distance", float),
+    "Icp/Iterations": ("registration.icp_iterations", int),
+    "Optimizer/Iterations": ("graph.iterations", int),
+    "Optimizer/Robust": ("graph.robust", lambda v: _to_bool("Optimizer/Robust", v)),
+    "Grid/CellSize": ("grid.resolution", float),
+    "Grid/RangeMax": ("grid.range_max", float),
+    "Rtabmap/DetectionRate": ("sync.rate_hz", float),
+    # The node's historical names for synchroniser settings (rtabmap_ros uses these).
+    "detection_rate": ("sync.rate_hz", float),
+    "approx_sync": ("sync.approx_sync", lambda v: _to_bool("approx_sync", v)),
+    "sync_queue_size": ("sync.queue_size", int),
+    "approx_sync_max_interval": ("sync.tolerance_s", float),
+}
+
+# Kp/DetectorStrategy values with an equivalent here (RTAB-Map: 2=ORB, 1=SIFT, 8=GFTT/ORB).
+_DETECTOR_STRATEGIES = {2: "orb", 1: "sift", 8: "gftt_orb"}
+
+
+def resolve_name(name: str, value: Any) -> tuple[str, Any]:
+    """Map any accepted spelling of a parameter to its dotted name, converting the value's unit."""
+    if name in RTABMAP_ALIASES:
+        dotted, convert = RTABMAP_ALIASES[name]
+        try:
+            return dotted, convert(value)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"{name}={value!r} cannot be converted for {dotted}: {exc}") from exc
+    if "." not in name and name in {f.name for f in fields(NodeParams)}:
+        return f"node.{name}", value
+    section_name, _, field_name = name.partition(".")
+    sections = {f.name: f for f in fields(Params)}
+    if section_name in sections and field_name:
+        section_type = sections[section_name].default_factory  # type: ignore[misc]
+        if field_name in {f.name for f in fields(section_type)}:
+            return name, value
+    raise ParameterError(
+        f"unknown parameter {name!r}: use a dotted name such as memory.stm_size, an RTAB-Map name "
+        f"such as Mem/STMSize, or a node parameter such as database_path"
+    )
+
+
+def _coerce(name: str, current: Any, value: Any) -> Any:
+    """Convert ``value`` to the type of the field's current value, with a clear error."""
+    try:
+        if isinstance(current, bool):
+            return _to_bool(name, value)
+        if isinstance(current, int):
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError("not an integer")
+            return int(value)
+        if isinstance(current, float):
+            return float(value)
+        if isinstance(current, tuple):
+            items = value.split() if isinstance(value, str) else list(value)
+            if len(items) != len(current):
+                raise ValueError(f"expected {len(current)} values")
+            return tuple(type(c)(v) for c, v in zip(current, items))
+        if isinstance(current, str):
+            return str(value)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"{name}={value!r} is invalid: {exc}") from exc
+    return value
+
+
+def _to_bool(name: str, value: Any) -> bool:
+    if isinstance(value, bool):
+        return value
+    text = str(value).strip().lower()
+    if text in ("true", "1", "yes", "on"):
+        return True
+    if text in ("false", "0", "no", "off"):
+        return False
+    raise ParameterError(f"{name}={value!r} is not a boolean (true/false)")
+
+
+def _plain(value: Any) -> Any:
+    return list(value) if isinstance(value, tuple) else value
+
+
+def _unwrap_ros(values: Mapping[str, Any]) -> Mapping[str, Any]:
+    """Accept a ROS 2 parameter file: ``node_name: {ros__parameters: {...}}``."""
+    for value in values.values():
+        if isinstance(value, Mapping) and "ros__parameters" in value:
+            return value["ros__parameters"] or {}
+    if "ros__parameters" in values:
+        return values["ros__parameters"] or {}
+    return values
+
+
+def _flatten(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested dicts to dotted names; RTAB-Map names (with '/') are kept whole."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(_flatten(value, f"{name}."))
+        else:
+            out[name] = value
+    return out
+
+
+def default_config_path(name: str = "rtabmap.yaml") -> Path | None:
+    """Locate a shipped config file: ament share dir, the source tree, or the pip data prefix."""
+    import sys
+
+    candidates = [Path(__file__).resolve().parents[2] / "config" / name,
+                  Path(sys.prefix) / "share" / "rtabmap_ros2" / "config" / name]
+    try:  # in a ROS 2 workspace
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.insert(0, Path(get_package_share_directory("rtabmap_ros2")) / "config" / name)
+    except Exception:  # noqa: BLE001 - ament not installed or package not in the index
+        pass
+    for path in candidates:
+        if path.is_file():
+            return path
+    return None
+
+
+__all__ = [
+    "BayesParams", "FeatureParams", "GraphParams", "GridParams", "MemoryParams", "NodeParams", "Params",
+    "RTABMAP_ALIASES", "RegistrationParams", "SyncParams", "VocabularyParams", "default_config_path",
+    "resolve_name",
+]

@@ -1,0 +1,172 @@
+"""Sensor data of one synchronised frame, ROS-free.
+
+A :class:`SensorFrame` is what the synchroniser (bags and the live node alike) hands to
+:meth:`rtabmap_ros2.core.rtabmap.Rtabmap.process`. Every part is optional: an image-only frame
+(the 2013 paper's experiments) has just ``rgb``; the 2014 robot has all of them.
+
+Frames: ``base`` is the robot base (``frame_id``), ``odom`` the odometry frame; the camera model
+holds ``T_base_camera`` to the *optical* frame (z forward, x right, y down), the scan
+``T_base_laser``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterator, Optional, Protocol, runtime_checkable
+
+import numpy as np
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.errors import SensorDataError
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Pinhole camera: intrinsics (px) and the base -> optical frame transform (4x4)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    T_base_camera: np.ndarray = field(default_factory=transforms.identity)
+
+    def __post_init__(self) -> None:
+        if not (self.fx > 0 and self.fy > 0 and np.isfinite([self.fx, self.fy, self.cx, self.cy]).all()):
+            raise SensorDataError(
+                f"camera model has invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}: "
+                "check the camera_info (K must be filled)")
+        if self.width <= 0 or self.height <= 0:
+            raise SensorDataError(f"camera model has invalid size {self.width}x{self.height}")
+        if not transforms.is_rigid(self.T_base_camera):
+            raise SensorDataError("camera model's T_base_camera is not a rigid 4x4 transform")
+
+    def back_project(self, uv: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+        """Points in the optical frame (N,3, m) of pixels ``uv`` (N,2, px) at depths (N,, m)."""
+        z = np.asarray(depth_m, dtype=np.float64)
+        x = (uv[:, 0] - self.cx) * z / self.fx
+        y = (uv[:, 1] - self.cy) * z / self.fy
+        return np.stack([x, y, z], axis=1)
+
+    def project(self, points_camera: np.ndarray) -> np.ndarray:
+        """Pixels (N,2) of points in the optical frame (N,3); points behind the camera give NaN."""
+        p = np.asarray(points_camera, dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(p[:, 2] > 0, p[:, 2], np.nan)
+            return np.stack([p[:, 0] * self.fx / z + self.cx, p[:, 1] * self.fy / z + self.cy], axis=1)
+
+    def scaled(self, width: int, height: int) -> "CameraModel":
+        """The same camera at another resolution (e.g. depth registered at half size)."""
+        sx, sy = width / self.width, height / self.height
+        return CameraModel(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
+                           self.T_base_camera)
+
+
+@dataclass(frozen=True)
+class LaserScan:
+    """A planar laser scan: ranges (N,, m, NaN/inf = no return) and its geometry."""
+
+    ranges: np.ndarray
+    angle_min: float
+    angle_increment: float
+    range_min: float
+    range_max: float
+    T_base_laser: np.ndarray = field(default_factory=transforms.identity)
+
+    def __post_init__(self) -> None:
+        r = np.asarray(self.ranges)
+        if r.ndim != 1 or r.size == 0:
+            raise SensorDataError(f"laser scan has no ranges (shape {r.shape})")
+        if not (np.isfinite(self.angle_min) and np.isfinite(self.angle_increment) and self.angle_increment != 0):
+            raise SensorDataError(
+                f"laser scan has invalid angles: angle_min={self.angle_min} increment={self.angle_increment}")
+        if not (0 <= self.range_min < self.range_max and np.isfinite(self.range_max)):
+            raise SensorDataError(f"laser scan has invalid range limits [{self.range_min}, {self.range_max}]")
+
+    @property
+    def angles(self) -> np.ndarray:
+        """Beam angles (N,, rad) in the laser frame."""
+        return self.angle_min + self.angle_increment * np.arange(len(self.ranges))
+
+    def valid_mask(self) -> np.ndarray:
+        """Beams with a return inside [range_min, range_max)."""
+        r = np.asarray(self.ranges, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(r) & (r >= self.range_min) & (r < self.range_max)
+
+    def points_laser(self) -> np.ndarray:
+        """Valid returns as (M,2) points (m) in the laser frame."""
+        m = self.valid_mask()
+        r = np.asarray(self.ranges, dtype=np.float64)[m]
+        a = self.angles[m]
+        return np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+
+    def points_base(self) -> np.ndarray:
+        """Valid returns as (M,2) points (m) in the base frame (planar projection)."""
+        p = self.points_laser()
+        T = self.T_base_laser
+        return p @ T[:2, :2].T + T[:2, 3]
+
+
+@dataclass
+class SensorFrame:
+    """One synchronised set of sensor data; every part but the stamp is optional.
+
+    Attributes:
+        stamp_ns: acquisition time (ns since the epoch, or since the bag's start).
+        T_odom_base: odometry pose (4x4, odom frame), or None without odometry.
+        odom_covariance: 6x6 covariance of the odometry pose (x y z roll pitch yaw), or None.
+        rgb: HxWx3 uint8 image in RGB order, or None.
+        depth_m: HxW float32 depth (m) registered to ``rgb``; NaN or 0 = invalid.
+        camera: pinhole model of ``rgb`` / ``depth_m``.
+        scan: planar laser scan.
+    """
+
+    stamp_ns: int
+    T_odom_base: Optional[np.ndarray] = None
+    odom_covariance: Optional[np.ndarray] = None
+    rgb: Optional[np.ndarray] = None
+    depth_m: Optional[np.ndarray] = None
+    camera: Optional[CameraModel] = None
+    scan: Optional[LaserScan] = None
+
+    def validate(self) -> None:
+        """Raise :class:`SensorDataError` naming the problem when the frame cannot be used."""
+        if self.T_odom_base is not None and not transforms.is_rigid(np.asarray(self.T_odom_base), tol=1e-3):
+            raise SensorDataError("odometry pose is not a finite rigid transform (NaN or invalid quaternion?)")
+        if self.odom_covariance is not None:
+            c = np.asarray(self.odom_covariance)
+            if c.shape != (6, 6) or not np.all(np.isfinite(c)):
+                raise SensorDataError(f"odometry covariance must be a finite 6x6 matrix, got shape {c.shape}")
+        if self.rgb is not None:
+            if self.rgb.dtype != np.uint8 or self.rgb.ndim != 3 or self.rgb.shape[2] != 3:
+                raise SensorDataError(
+                    f"rgb image must be HxWx3 uint8, got shape {self.rgb.shape} dtype {self.rgb.dtype}")
+        if self.depth_m is not None:
+            d = self.depth_m
+            if d.ndim != 2 or d.dtype != np.float32:
+                raise SensorDataError(f"depth must be HxW float32 metres, got shape {d.shape} dtype {d.dtype}")
+            if np.isinf(d).any():
+                raise SensorDataError("depth image contains inf values (use NaN or 0 for invalid depth)")
+            if self.rgb is not None and self.rgb.shape[:2] != d.shape:
+                raise SensorDataError(
+                    f"rgb {self.rgb.shape[1]}x{self.rgb.shape[0]} and depth {d.shape[1]}x{d.shape[0]} sizes differ")
+            if self.camera is None:
+                raise SensorDataError("depth image without a camera model (camera_info missing)")
+        if self.camera is not None and self.rgb is not None:
+            if (self.camera.width, self.camera.height) != (self.rgb.shape[1], self.rgb.shape[0]):
+                raise SensorDataError(
+                    f"camera_info size {self.camera.width}x{self.camera.height} differs from the image "
+                    f"{self.rgb.shape[1]}x{self.rgb.shape[0]}")
+        if self.scan is not None and not self.scan.valid_mask().any():
+            raise SensorDataError("laser scan has no valid range (empty or all NaN/out of range)")
+
+
+@runtime_checkable
+class Dataset(Protocol):
+    """A sequence of frames: bags, TUM RGB-D folders, image folders, simulated sessions."""
+
+    def __iter__(self) -> Iterator[SensorFrame]: ...
+
+    def __len__(self) -> int: ...

@@ -1,0 +1,107 @@
+"""SE(3) / SE(2) helpers on 4x4 homogeneous matrices.
+
+Conventions: ``T_a_b`` maps points from frame b into frame a (``p_a = T_a_b @ p_b``); a pose of the
+robot in the map is ``T_map_base``. Quaternions are named by their order: ``quat_xyzw`` (ROS, TUM)
+or ``quat_wxyz``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def identity() -> np.ndarray:
+    """The 4x4 identity transform (float64)."""
+    return np.eye(4)
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def relative(T_w_a: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
+    """``T_a_b = inv(T_w_a) @ T_w_b``: the motion from pose a to pose b."""
+    return inverse(T_w_a) @ T_w_b
+
+
+def from_xyz_quat_xyzw(xyz, quat_xyzw) -> np.ndarray:
+    """4x4 transform from a translation (m) and a unit quaternion (x, y, z, w)."""
+    x, y, z, w = (float(v) for v in quat_xyzw)
+    n = np.sqrt(x * x + y * y + z * z + w * w)
+    if not np.isfinite(n) or n < 1e-9:
+        raise ValueError(f"quaternion {quat_xyzw} is not a rotation (norm {n})")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    T = np.eye(4)
+    T[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    T[:3, 3] = np.asarray(xyz, dtype=float)
+    return T
+
+
+def quat_xyzw(T: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of the rotation of a 4x4 transform, with w >= 0."""
+    R = T[:3, :3]
+    tr = np.trace(R)
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2
+        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2
+        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
+    q = np.asarray(q) / np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def from_xy_yaw(x: float, y: float, yaw: float, z: float = 0.0) -> np.ndarray:
+    """4x4 transform of a planar pose (m, m, rad)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def to_xy_yaw(T: np.ndarray) -> tuple[float, float, float]:
+    """Planar part (x, y, yaw) of a 4x4 transform."""
+    return float(T[0, 3]), float(T[1, 3]), float(np.arctan2(T[1, 0], T[0, 0]))
+
+
+def yaw_of(T: np.ndarray) -> float:
+    """Rotation about z (rad) of a 4x4 transform."""
+    return float(np.arctan2(T[1, 0], T[0, 0]))
+
+
+def project_planar(T: np.ndarray) -> np.ndarray:
+    """Keep x, y, yaw of a transform (3 DoF), dropping z, roll and pitch."""
+    x, y, yaw = to_xy_yaw(T)
+    return from_xy_yaw(x, y, yaw)
+
+
+def rotation_angle(T: np.ndarray) -> float:
+    """Angle (rad) of the rotation part of a 4x4 transform."""
+    c = (np.trace(T[:3, :3]) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def is_rigid(T: np.ndarray, tol: float = 1e-4) -> bool:
+    """True when T is a finite 4x4 rigid transform."""
+    T = np.asarray(T)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol
+                and np.allclose(T[3], [0, 0, 0, 1]))
