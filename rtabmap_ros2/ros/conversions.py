@@ -1,0 +1,432 @@
+"""ROS 2 message <-> numpy conversions (rclpy message classes), in matched pairs.
+
+This is the only module of the node that knows message layouts. Every ``*_from_msg`` raises
+:class:`~rtabmap_ros2.errors.SensorDataError` with the reason when a message cannot be used
+(unknown encoding, sizes that disagree, NaN pose, empty scan...): the node logs it once per kind
+and drops the frame.
+
+Conventions (CONTRACT.md): transforms are 4x4 float64 ``T_a_b``; images RGB HxWx3 uint8; depth
+HxW float32 metres with NaN invalid; stamps int nanoseconds.
+
+Costs (LIBRARIES.md, re-measured in ``bench/bench_node.py``): pixel buffers are read with
+``np.frombuffer`` and written from ``bytes``; ``OccupancyGrid.data`` is written from an
+``array.array('b')`` (assigning a numpy array there is ~1000x slower).
+"""
+
+from __future__ import annotations
+
+import array
+from typing import Any, Iterable, Mapping
+
+import cv2
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, TransformStamped, Vector3
+from nav_msgs.msg import OccupancyGrid as OccupancyGridMsg
+from nav_msgs.msg import Odometry, Path
+from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import LaserScan as LaserScanMsg
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.graph import Link, LinkType
+from rtabmap_ros2.core.sensor import CameraModel, LaserScan
+from rtabmap_ros2.errors import SensorDataError
+
+NS_PER_S = 1_000_000_000
+MM_PER_M = 1000.0
+
+# Base (x forward, y left, z up; REP 103) -> camera optical frame (z forward, x right, y down),
+# camera at the base origin. Used when a CameraInfo arrives without an extrinsic calibration:
+# without tf2 there is no TF tree to read it from. Same convention as the bag reader's default.
+DEFAULT_T_BASE_CAMERA = np.array([
+    [0.0, 0.0, 1.0, 0.0],
+    [-1.0, 0.0, 0.0, 0.0],
+    [0.0, -1.0, 0.0, 0.0],
+    [0.0, 0.0, 0.0, 1.0],
+])
+
+# Colour encodings accepted on rgb/image: bytes per pixel and the channel order to get RGB.
+_COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1}
+_DEPTH_ENCODINGS = {"16UC1": np.dtype("<u2"), "mono16": np.dtype("<u2"), "32FC1": np.dtype("<f4")}
+
+# Marker appearance (RViz): node sphere diameter and link line width (m), RGBA colours.
+NODE_MARKER_SCALE = 0.05
+LINK_MARKER_WIDTH = 0.02
+NODE_COLOR = (1.0, 1.0, 0.0, 1.0)      # yellow
+NEIGHBOR_COLOR = (0.0, 0.0, 1.0, 1.0)  # blue
+LOOP_INTRA_COLOR = (1.0, 0.0, 0.0, 1.0)  # red
+LOOP_INTER_COLOR = (0.0, 1.0, 0.0, 1.0)  # green
+_LINK_STYLE = {
+    LinkType.NEIGHBOR: ("neighbor_links", NEIGHBOR_COLOR),
+    LinkType.LOOP_INTRA: ("loop_closures_intra", LOOP_INTRA_COLOR),
+    LinkType.LOOP_INTER: ("loop_closures_inter", LOOP_INTER_COLOR),
+}
+
+
+# -- stamps and headers -----------------------------------------------------------------------
+def stamp_to_ns(stamp: Time) -> int:
+    """Nanoseconds of a ``builtin_interfaces/Time``."""
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+
+
+def stamp_from_ns(stamp_ns: int) -> Time:
+    """``builtin_interfaces/Time`` of a stamp in nanoseconds (>= 0)."""
+    stamp_ns = int(stamp_ns)
+    if stamp_ns < 0:
+        raise ValueError(f"stamp {stamp_ns} ns is negative: ROS time starts at 0")
+    return Time(sec=stamp_ns // NS_PER_S, nanosec=stamp_ns % NS_PER_S)
+
+
+def header(stamp_ns: int, frame_id: str) -> Header:
+    """A ``std_msgs/Header``."""
+    return Header(stamp=stamp_from_ns(stamp_ns), frame_id=frame_id)
+
+
+# -- poses -------------------------------------------------------------------------------------
+def pose_to_msg(T: np.ndarray) -> Pose:
+    """``geometry_msgs/Pose`` of a 4x4 rigid transform (m)."""
+    q = transforms.quat_xyzw(T)
+    return Pose(position=Point(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+
+
+def pose_from_msg(pose: Pose) -> np.ndarray:
+    """4x4 transform (m) of a ``geometry_msgs/Pose``; SensorDataError on NaN or a zero quaternion."""
+    p, o = pose.position, pose.orientation
+    return _xyz_quat_to_T((p.x, p.y, p.z), (o.x, o.y, o.z, o.w), "pose")
+
+
+def transform_to_msg(T_parent_child: np.ndarray, stamp_ns: int, parent_frame: str,
+                     child_frame: str) -> TransformStamped:
+    """``geometry_msgs/TransformStamped`` (the TF of ``child_frame`` in ``parent_frame``)."""
+    q = transforms.quat_xyzw(T_parent_child)
+    t = T_parent_child[:3, 3]
+    return TransformStamped(
+        header=header(stamp_ns, parent_frame), child_frame_id=child_frame,
+        transform=Transform(translation=Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+                            rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))
+
+
+def transform_from_msg(msg: TransformStamped) -> np.ndarray:
+    """4x4 ``T_parent_child`` of a ``geometry_msgs/TransformStamped``."""
+    t, r = msg.transform.translation, msg.transform.rotation
+    return _xyz_quat_to_T((t.x, t.y, t.z), (r.x, r.y, r.z, r.w), "transform")
+
+
+def _xyz_quat_to_T(xyz, quat_xyzw, what: str) -> np.ndarray:
+    values = np.array([*xyz, *quat_xyzw], dtype=np.float64)
+    if not np.all(np.isfinite(values)):
+        raise SensorDataError(f"{what} has NaN or inf values {values.tolist()}: check the odometry source")
+    try:
+        return transforms.from_xyz_quat_xyzw(values[:3], values[3:])
+    except ValueError as exc:
+        raise SensorDataError(f"{what} has an invalid quaternion: {exc}") from exc
+
+
+# -- odometry ----------------------------------------------------------------------------------
+def odometry_from_msg(msg: Odometry) -> tuple[np.ndarray, np.ndarray]:
+    """``(T_odom_base 4x4, covariance 6x6)`` of a ``nav_msgs/Odometry``.
+
+    The covariance is over (x, y, z, roll, pitch, yaw), row-major as in the message. NaN or inf in
+    the pose or the covariance, or a zero quaternion, raise SensorDataError.
+    """
+    T = pose_from_msg(msg.pose.pose)
+    cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
+    if not np.all(np.isfinite(cov)):
+        raise SensorDataError("odometry covariance has NaN or inf values")
+    return T, cov
+
+
+def odometry_to_msg(T_odom_base: np.ndarray, stamp_ns: int, odom_frame: str = "odom",
+                    base_frame: str = "base_link", covariance: np.ndarray | None = None) -> Odometry:
+    """``nav_msgs/Odometry`` of a pose (4x4) and its 6x6 covariance (zeros if None)."""
+    msg = Odometry(header=header(stamp_ns, odom_frame), child_frame_id=base_frame)
+    msg.pose.pose = pose_to_msg(T_odom_base)
+    if covariance is not None:
+        msg.pose.covariance = np.asarray(covariance, dtype=np.float64).reshape(36)
+    return msg
+
+
+# -- images ------------------------------------------------------------------------------------
+def _pixel_rows(msg: Image, bytes_per_pixel: int) -> np.ndarray:
+    """(H, W*bytes_per_pixel) uint8 view of an image's pixels, dropping each row's padding."""
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = w * bytes_per_pixel
+    if h <= 0 or w <= 0:
+        raise SensorDataError(f"image is empty ({w}x{h})")
+    if step < row_bytes:
+        raise SensorDataError(f"image step {step} is smaller than width x pixel size = {row_bytes} bytes")
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    if data.size < step * h:
+        raise SensorDataError(f"image data holds {data.size} bytes, expected step x height = {step * h}")
+    return data[:step * h].reshape(h, step)[:, :row_bytes]
+
+
+def image_from_msg(msg: Image) -> np.ndarray:
+    """RGB HxWx3 uint8 image (a copy) of a ``sensor_msgs/Image`` in rgb8, bgr8 or mono8."""
+    encoding = msg.encoding
+    if encoding not in _COLOR_ENCODINGS:
+        raise SensorDataError(
+            f"image encoding {encoding!r} is not supported: publish rgb8, bgr8 or mono8")
+    channels = _COLOR_ENCODINGS[encoding]
+    rows = _pixel_rows(msg, channels)
+    h, w = int(msg.height), int(msg.width)
+    if encoding == "rgb8":
+        return rows.reshape(h, w, 3).copy()
+    if encoding == "bgr8":
+        # cv2 swaps channels ~25x faster than a numpy [..., ::-1] copy (bench/bench_node.py).
+        return cv2.cvtColor(rows.reshape(h, w, 3), cv2.COLOR_BGR2RGB)
+    return np.repeat(rows.reshape(h, w, 1), 3, axis=2)
+
+
+def image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str, encoding: str = "rgb8") -> Image:
+    """``sensor_msgs/Image`` of an RGB HxWx3 uint8 image, written as rgb8, bgr8 or mono8."""
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise SensorDataError(f"image must be HxWx3 uint8 RGB, got shape {rgb.shape} dtype {rgb.dtype}")
+    if encoding == "rgb8":
+        pixels = rgb
+    elif encoding == "bgr8":
+        pixels = rgb[:, :, ::-1]
+    elif encoding == "mono8":
+        pixels = rgb.mean(axis=2).round().astype(np.uint8)
+    else:
+        raise SensorDataError(f"image_to_msg: encoding {encoding!r} is not one of rgb8, bgr8, mono8")
+    h, w = rgb.shape[:2]
+    msg = Image(header=header(stamp_ns, frame_id), height=h, width=w, encoding=encoding,
+                is_bigendian=0, step=w * _COLOR_ENCODINGS[encoding])
+    msg.data = np.ascontiguousarray(pixels).tobytes()
+    return msg
+
+
+def depth_from_msg(msg: Image) -> np.ndarray:
+    """HxW float32 depth (m) of a 16UC1 (mm) or 32FC1 (m) ``sensor_msgs/Image``; 0 -> NaN.
+
+    Inf in a 32FC1 image raises SensorDataError (the issue lists it as bad input); NaN stays NaN.
+    """
+    encoding = msg.encoding
+    if encoding not in _DEPTH_ENCODINGS:
+        raise SensorDataError(f"depth encoding {encoding!r} is not supported: publish 16UC1 (mm) or 32FC1 (m)")
+    dtype = _DEPTH_ENCODINGS[encoding]
+    if msg.is_bigendian:
+        dtype = dtype.newbyteorder(">")
+    h, w = int(msg.height), int(msg.width)
+    rows = _pixel_rows(msg, dtype.itemsize)
+    raw = np.ascontiguousarray(rows).view(dtype).reshape(h, w)
+    depth = raw.astype(np.float32)
+    if dtype.kind == "u":
+        invalid = raw == 0
+        depth *= np.float32(1.0 / MM_PER_M)
+    else:
+        if np.isinf(depth).any():
+            raise SensorDataError("depth image contains inf values: the driver should publish NaN or 0 "
+                                  "for invalid pixels")
+        invalid = depth == 0
+    depth[invalid] = np.nan
+    return depth
+
+
+def depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str, encoding: str = "16UC1") -> Image:
+    """``sensor_msgs/Image`` of an HxW depth (m, NaN invalid) as 16UC1 (mm, 0 invalid) or 32FC1 (m)."""
+    depth_m = np.asarray(depth_m, dtype=np.float32)
+    if depth_m.ndim != 2:
+        raise SensorDataError(f"depth must be HxW, got shape {depth_m.shape}")
+    if encoding in ("16UC1", "mono16"):
+        mm = np.nan_to_num(depth_m * np.float32(MM_PER_M), nan=0.0, posinf=0.0, neginf=0.0)
+        pixels = np.clip(np.round(mm), 0, np.iinfo(np.uint16).max).astype("<u2")
+    elif encoding == "32FC1":
+        pixels = depth_m.astype("<f4")
+    else:
+        raise SensorDataError(f"depth_to_msg: encoding {encoding!r} is not 16UC1 or 32FC1")
+    h, w = depth_m.shape
+    msg = Image(header=header(stamp_ns, frame_id), height=h, width=w, encoding=encoding,
+                is_bigendian=0, step=w * pixels.itemsize)
+    msg.data = pixels.tobytes()
+    return msg
+
+
+# -- camera info -------------------------------------------------------------------------------
+def camera_model_from_msg(msg: CameraInfo, T_base_camera: np.ndarray | None = None) -> CameraModel:
+    """Pinhole model of a ``sensor_msgs/CameraInfo`` (K; distortion is assumed rectified).
+
+    ``T_base_camera`` (4x4 base -> optical frame) defaults to :data:`DEFAULT_T_BASE_CAMERA`.
+    """
+    k = np.asarray(msg.k, dtype=np.float64)
+    try:
+        return CameraModel(fx=float(k[0]), fy=float(k[4]), cx=float(k[2]), cy=float(k[5]),
+                           width=int(msg.width), height=int(msg.height),
+                           T_base_camera=DEFAULT_T_BASE_CAMERA.copy() if T_base_camera is None else T_base_camera)
+    except SensorDataError as exc:
+        raise SensorDataError(f"camera_info unusable: {exc}") from exc
+
+
+def camera_info_to_msg(camera: CameraModel, stamp_ns: int, frame_id: str) -> CameraInfo:
+    """``sensor_msgs/CameraInfo`` of a pinhole model (no distortion, P = [K | 0])."""
+    msg = CameraInfo(header=header(stamp_ns, frame_id), width=camera.width, height=camera.height,
+                     distortion_model="plumb_bob")
+    msg.k = np.array([camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1], dtype=np.float64)
+    msg.r = np.eye(3).reshape(9)
+    msg.p = np.array([camera.fx, 0, camera.cx, 0, 0, camera.fy, camera.cy, 0, 0, 0, 1, 0], dtype=np.float64)
+    msg.d = array.array("d", [0.0] * 5)
+    return msg
+
+
+# -- laser scans -------------------------------------------------------------------------------
+def scan_from_msg(msg: LaserScanMsg, T_base_laser: np.ndarray | None = None) -> LaserScan:
+    """Core LaserScan of a ``sensor_msgs/LaserScan``; SensorDataError if empty or without a return."""
+    ranges = np.frombuffer(msg.ranges, dtype=np.float32).astype(np.float32)
+    if ranges.size == 0:
+        raise SensorDataError("laser scan is empty (no ranges)")
+    if not np.isfinite(ranges).any():
+        raise SensorDataError(f"laser scan has no finite range ({ranges.size} beams, all NaN/inf)")
+    scan = LaserScan(ranges=ranges, angle_min=float(msg.angle_min), angle_increment=float(msg.angle_increment),
+                     range_min=float(msg.range_min), range_max=float(msg.range_max),
+                     **({} if T_base_laser is None else {"T_base_laser": T_base_laser}))
+    if not scan.valid_mask().any():
+        raise SensorDataError(
+            f"laser scan has no range inside [{scan.range_min}, {scan.range_max}) m")
+    return scan
+
+
+def scan_to_msg(scan: LaserScan, stamp_ns: int, frame_id: str) -> LaserScanMsg:
+    """``sensor_msgs/LaserScan`` of a core LaserScan (angles rad, ranges m)."""
+    ranges = np.asarray(scan.ranges, dtype=np.float32)
+    msg = LaserScanMsg(header=header(stamp_ns, frame_id), angle_min=float(scan.angle_min),
+                       angle_max=float(scan.angle_min + scan.angle_increment * (ranges.size - 1)),
+                       angle_increment=float(scan.angle_increment), range_min=float(scan.range_min),
+                       range_max=float(scan.range_max))
+    msg.ranges = array.array("f", ranges.tobytes())
+    return msg
+
+
+# -- map outputs -------------------------------------------------------------------------------
+def grid_to_msg(grid: Any, stamp_ns: int, frame_id: str) -> OccupancyGridMsg:
+    """``nav_msgs/OccupancyGrid`` of a ``core.grid.OccupancyGrid``.
+
+    ``grid.data`` is (H,W) int8 (-1 unknown, 0 free, 100 occupied) with ``data[row=y, col=x]``,
+    ``grid.resolution`` m/cell, ``grid.origin_xy`` the map-frame position (m) of cell (0, 0)'s corner.
+    """
+    data = np.ascontiguousarray(grid.data, dtype=np.int8)
+    msg = OccupancyGridMsg(header=header(stamp_ns, frame_id))
+    msg.info.map_load_time = msg.header.stamp
+    msg.info.resolution = float(grid.resolution)
+    msg.info.height, msg.info.width = int(data.shape[0]), int(data.shape[1])
+    msg.info.origin.position.x = float(grid.origin_xy[0])
+    msg.info.origin.position.y = float(grid.origin_xy[1])
+    msg.info.origin.orientation.w = 1.0
+    msg.data = array.array("b", data.tobytes())
+    return msg
+
+
+def grid_from_msg(msg: OccupancyGridMsg) -> tuple[np.ndarray, float, tuple[float, float]]:
+    """``(data (H,W) int8, resolution m, origin_xy m)`` of a ``nav_msgs/OccupancyGrid``."""
+    h, w = int(msg.info.height), int(msg.info.width)
+    data = np.frombuffer(msg.data, dtype=np.int8)
+    if data.size != h * w:
+        raise SensorDataError(f"occupancy grid holds {data.size} cells, expected {w}x{h}")
+    return (data.reshape(h, w).copy(), float(msg.info.resolution),
+            (float(msg.info.origin.position.x), float(msg.info.origin.position.y)))
+
+
+def path_to_msg(poses: Mapping[int, np.ndarray], stamp_ns: int, frame_id: str) -> Path:
+    """``nav_msgs/Path`` of ``{node id: T_map_base 4x4}``, ordered by node id."""
+    hdr = header(stamp_ns, frame_id)
+    msg = Path(header=hdr)
+    msg.poses = [PoseStamped(header=hdr, pose=pose_to_msg(poses[i])) for i in sorted(poses)]
+    return msg
+
+
+def path_from_msg(msg: Path) -> list[np.ndarray]:
+    """The 4x4 poses of a ``nav_msgs/Path``, in message order."""
+    return [pose_from_msg(p.pose) for p in msg.poses]
+
+
+def _color(rgba: tuple[float, float, float, float]) -> ColorRGBA:
+    return ColorRGBA(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
+
+
+def _point(T: np.ndarray) -> Point:
+    return Point(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]))
+
+
+def graph_to_markers(poses: Mapping[int, np.ndarray], links: Iterable[Link], stamp_ns: int,
+                     frame_id: str) -> MarkerArray:
+    """``visualization_msgs/MarkerArray`` of a graph: nodes and links coloured by type.
+
+    Markers (namespaces): a DELETEALL first (so a reset map leaves nothing behind), ``nodes``
+    (SPHERE_LIST at each ``T_map_base``), ``neighbor_links`` (LINE_LIST, blue),
+    ``loop_closures_intra`` (red) and ``loop_closures_inter`` (green). Links with an end not in
+    ``poses`` are skipped.
+    """
+    hdr = header(stamp_ns, frame_id)
+    markers = [Marker(header=hdr, action=Marker.DELETEALL)]
+    nodes = Marker(header=hdr, ns="nodes", id=0, type=Marker.SPHERE_LIST, action=Marker.ADD)
+    nodes.pose.orientation.w = 1.0
+    nodes.scale.x = nodes.scale.y = nodes.scale.z = NODE_MARKER_SCALE
+    nodes.color = _color(NODE_COLOR)
+    nodes.points = [_point(poses[i]) for i in sorted(poses)]
+    markers.append(nodes)
+    by_type: dict[LinkType, list[Point]] = {t: [] for t in _LINK_STYLE}
+    for link in links:
+        if link.from_id in poses and link.to_id in poses:
+            by_type[LinkType(link.type)] += [_point(poses[link.from_id]), _point(poses[link.to_id])]
+    for marker_id, (link_type, (ns, rgba)) in enumerate(_LINK_STYLE.items(), start=1):
+        m = Marker(header=hdr, ns=ns, id=marker_id, type=Marker.LINE_LIST, action=Marker.ADD)
+        m.pose.orientation.w = 1.0
+        m.scale.x = LINK_MARKER_WIDTH
+        m.color = _color(rgba)
+        m.points = by_type[link_type]
+        markers.append(m)
+    return MarkerArray(markers=markers)
+
+
+# -- statistics --------------------------------------------------------------------------------
+STATUS_NAME = "rtabmap"
+HARDWARE_ID = "rtabmap_ros2"
+
+
+def statistics_to_msg(statistics: Any, stamp_ns: int, frame_id: str = "") -> DiagnosticArray:
+    """``diagnostic_msgs/DiagnosticArray`` carrying one frame's statistics (the ``info`` topic).
+
+    ``statistics`` is a ``Statistics`` (anything with ``to_dict()``) or a mapping. The array holds
+    one ``DiagnosticStatus`` named ``rtabmap`` (level OK) whose ``values`` are one ``KeyValue`` per
+    statistic, values as text (nested mappings flattened as ``parent/child``, e.g.
+    ``timings_ms/bayes``) and whose ``message`` summarises the location and loop closure ids.
+    """
+    values = statistics.to_dict() if hasattr(statistics, "to_dict") else dict(statistics)
+    flat = _flatten_stats(values)
+    summary = (f"location {flat.get('location_id', '?')}, map {flat.get('map_id', '?')}, "
+               f"loop closure {flat.get('loop_closure_id', '?')}")
+    status = DiagnosticStatus(level=DiagnosticStatus.OK, name=STATUS_NAME, hardware_id=HARDWARE_ID,
+                              message=summary,
+                              values=[KeyValue(key=k, value=_text(v)) for k, v in flat.items()])
+    return DiagnosticArray(header=header(stamp_ns, frame_id), status=[status])
+
+
+def statistics_from_msg(msg: DiagnosticArray) -> dict[str, str]:
+    """The ``{key: value text}`` of the ``rtabmap`` status of an ``info`` message."""
+    for status in msg.status:
+        if status.name == STATUS_NAME:
+            return {kv.key: kv.value for kv in status.values}
+    raise SensorDataError(f"info message has no {STATUS_NAME!r} status")
+
+
+def _flatten_stats(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if isinstance(value, Mapping):
+            out.update(_flatten_stats(value, f"{prefix}{key}/"))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    return str(value)

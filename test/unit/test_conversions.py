@@ -1,0 +1,271 @@
+"""Round trips of the ROS message conversions on messages built in memory (no DDS needed)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from sensor_msgs.msg import Image  # noqa: E402
+from sensor_msgs.msg import LaserScan as LaserScanMsg  # noqa: E402
+from visualization_msgs.msg import Marker  # noqa: E402
+
+from rtabmap_ros2.core import transforms  # noqa: E402
+from rtabmap_ros2.core.graph import Link, LinkType  # noqa: E402
+from rtabmap_ros2.core.sensor import CameraModel, LaserScan  # noqa: E402
+from rtabmap_ros2.errors import SensorDataError  # noqa: E402
+from rtabmap_ros2.ros import conversions as conv  # noqa: E402
+
+
+@pytest.fixture
+def rgb(rng):
+    return rng.integers(0, 256, size=(6, 5, 3), dtype=np.uint8)
+
+
+def test_stamp_round_trip():
+    for ns in (0, 1, 999_999_999, 1_700_000_000_123_456_789):
+        assert conv.stamp_to_ns(conv.stamp_from_ns(ns)) == ns
+    with pytest.raises(ValueError):
+        conv.stamp_from_ns(-1)
+
+
+def test_pose_round_trip(random_se3):
+    for _ in range(20):
+        T = random_se3()
+        np.testing.assert_allclose(conv.pose_from_msg(conv.pose_to_msg(T)), T, atol=1e-12)
+
+
+def test_transform_round_trip(random_se3):
+    T = random_se3()
+    msg = conv.transform_to_msg(T, 5, "map", "odom")
+    assert (msg.header.frame_id, msg.child_frame_id) == ("map", "odom")
+    np.testing.assert_allclose(conv.transform_from_msg(msg), T, atol=1e-12)
+
+
+def test_odometry_round_trip_with_covariance(random_se3):
+    T = random_se3()
+    cov = np.diag([1e-2, 2e-2, 3e-2, 4e-3, 5e-3, 6e-3])
+    cov[0, 5] = cov[5, 0] = 1e-4
+    msg = conv.odometry_to_msg(T, 42, covariance=cov)
+    T2, cov2 = conv.odometry_from_msg(msg)
+    np.testing.assert_allclose(T2, T, atol=1e-12)
+    np.testing.assert_array_equal(cov2, cov)
+    assert conv.stamp_to_ns(msg.header.stamp) == 42
+
+
+@pytest.mark.parametrize("field,value,reason", [
+    ("position.x", math.nan, "NaN"),
+    ("orientation.w", math.inf, "NaN or inf"),
+])
+def test_odometry_with_nan_is_rejected(field, value, reason):
+    msg = Odometry()
+    msg.pose.pose.orientation.w = 1.0
+    part, attr = field.split(".")
+    setattr(getattr(msg.pose.pose, part), attr, value)
+    with pytest.raises(SensorDataError, match=reason):
+        conv.odometry_from_msg(msg)
+
+
+def test_odometry_zero_quaternion_is_rejected():
+    msg = Odometry()
+    msg.pose.pose.orientation.w = 0.0  # Jazzy's default is the identity (w = 1)
+    with pytest.raises(SensorDataError, match="quaternion"):
+        conv.odometry_from_msg(msg)
+
+
+def test_odometry_nan_covariance_is_rejected():
+    msg = conv.odometry_to_msg(np.eye(4), 0)
+    cov = np.zeros(36)
+    cov[7] = np.nan
+    msg.pose.covariance = cov
+    with pytest.raises(SensorDataError, match="covariance"):
+        conv.odometry_from_msg(msg)
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8"])
+def test_color_image_round_trip(rgb, encoding):
+    msg = conv.image_to_msg(rgb, 7, "camera", encoding)
+    assert msg.encoding == encoding and msg.step == rgb.shape[1] * 3
+    out = conv.image_from_msg(msg)
+    np.testing.assert_array_equal(out, rgb)
+    assert out.flags.writeable
+
+
+def test_bgr8_bytes_are_reversed(rgb):
+    msg = conv.image_to_msg(rgb, 0, "camera", "bgr8")
+    first = np.frombuffer(msg.data, np.uint8)[:3]
+    np.testing.assert_array_equal(first, rgb[0, 0, ::-1])
+
+
+def test_mono8_becomes_gray_rgb(rgb):
+    msg = conv.image_to_msg(rgb, 0, "camera", "mono8")
+    out = conv.image_from_msg(msg)
+    gray = rgb.mean(axis=2).round().astype(np.uint8)
+    for c in range(3):
+        np.testing.assert_array_equal(out[:, :, c], gray)
+
+
+def _padded(msg: Image, pad: int) -> Image:
+    """The same image with ``pad`` junk bytes at the end of each row."""
+    rows = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.step)
+    junk = np.full((msg.height, pad), 0xAB, np.uint8)
+    msg.data = np.hstack([rows, junk]).tobytes()
+    msg.step = msg.step + pad
+    return msg
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "mono8"])
+def test_image_step_padding_is_honoured(rgb, encoding):
+    reference = conv.image_from_msg(conv.image_to_msg(rgb, 0, "c", encoding))
+    padded = _padded(conv.image_to_msg(rgb, 0, "c", encoding), pad=7)
+    np.testing.assert_array_equal(conv.image_from_msg(padded), reference)
+
+
+def test_unsupported_image_encoding_names_it(rgb):
+    msg = conv.image_to_msg(rgb, 0, "c")
+    msg.encoding = "yuv422"
+    with pytest.raises(SensorDataError, match="yuv422"):
+        conv.image_from_msg(msg)
+
+
+def test_truncated_image_is_rejected(rgb):
+    msg = conv.image_to_msg(rgb, 0, "c")
+    msg.data = bytes(msg.data)[:-1]
+    with pytest.raises(SensorDataError, match="bytes"):
+        conv.image_from_msg(msg)
+
+
+def test_step_smaller_than_width_is_rejected(rgb):
+    msg = conv.image_to_msg(rgb, 0, "c")
+    msg.step = 4
+    with pytest.raises(SensorDataError, match="step"):
+        conv.image_from_msg(msg)
+
+
+def test_depth_16uc1_round_trip_mm_and_zero_is_nan():
+    depth = np.array([[0.0, 1.0, 1.234], [np.nan, 4.5, 65.535]], dtype=np.float32)
+    msg = conv.depth_to_msg(depth, 0, "camera", "16UC1")
+    assert np.frombuffer(msg.data, "<u2").tolist() == [0, 1000, 1234, 0, 4500, 65535]
+    out = conv.depth_from_msg(msg)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, [[np.nan, 1.0, 1.234], [np.nan, 4.5, 65.535]], rtol=1e-6)
+
+
+def test_depth_32fc1_round_trip_with_padding():
+    depth = np.array([[0.5, np.nan, 0.0], [2.25, 3.0, 9.0]], dtype=np.float32)
+    msg = _padded(conv.depth_to_msg(depth, 0, "camera", "32FC1"), pad=4)
+    out = conv.depth_from_msg(msg)
+    np.testing.assert_array_equal(out, [[0.5, np.nan, np.nan], [2.25, 3.0, 9.0]])
+
+
+def test_depth_big_endian_16uc1():
+    values = np.array([[1000, 2000]], dtype=">u2")
+    msg = Image(height=1, width=2, encoding="16UC1", is_bigendian=1, step=4)
+    msg.data = values.tobytes()
+    np.testing.assert_allclose(conv.depth_from_msg(msg), [[1.0, 2.0]])
+
+
+def test_depth_inf_is_rejected():
+    depth = np.array([[1.0, np.inf]], dtype=np.float32)
+    with pytest.raises(SensorDataError, match="inf"):
+        conv.depth_from_msg(conv.depth_to_msg(depth, 0, "c", "32FC1"))
+
+
+def test_depth_bad_encoding_names_it(rgb):
+    with pytest.raises(SensorDataError, match="rgb8"):
+        conv.depth_from_msg(conv.image_to_msg(rgb, 0, "c"))
+
+
+def test_camera_info_round_trip():
+    cam = CameraModel(525.0, 526.0, 319.5, 239.5, 640, 480)
+    model = conv.camera_model_from_msg(conv.camera_info_to_msg(cam, 0, "camera"))
+    assert (model.fx, model.fy, model.cx, model.cy, model.width, model.height) == (525.0, 526.0, 319.5, 239.5, 640, 480)
+    np.testing.assert_array_equal(model.T_base_camera, conv.DEFAULT_T_BASE_CAMERA)
+    # The default maps the optical axis (z) onto the base's forward axis (x).
+    np.testing.assert_allclose(model.T_base_camera[:3, :3] @ [0, 0, 1], [1, 0, 0])
+
+
+def test_empty_camera_info_is_rejected():
+    from sensor_msgs.msg import CameraInfo
+
+    with pytest.raises(SensorDataError, match="camera_info"):
+        conv.camera_model_from_msg(CameraInfo(width=640, height=480))
+
+
+def test_scan_round_trip():
+    ranges = np.array([1.0, np.nan, 2.5, np.inf, 3.0], dtype=np.float32)
+    scan = LaserScan(ranges, angle_min=-0.5, angle_increment=0.25, range_min=0.1, range_max=10.0)
+    msg = conv.scan_to_msg(scan, 3, "laser")
+    assert msg.angle_max == pytest.approx(0.5)
+    out = conv.scan_from_msg(msg)
+    np.testing.assert_array_equal(out.ranges, ranges)
+    assert (out.angle_min, out.angle_increment, out.range_min, out.range_max) == pytest.approx((-0.5, 0.25, 0.1, 10.0))
+
+
+@pytest.mark.parametrize("ranges,reason", [([], "empty"), ([np.nan, np.nan], "no finite"),
+                                           ([20.0, 30.0], "no range inside")])
+def test_bad_scans_are_rejected(ranges, reason):
+    msg = LaserScanMsg(angle_min=0.0, angle_increment=0.1, range_min=0.1, range_max=10.0)
+    msg.ranges = [float(r) for r in ranges]
+    with pytest.raises(SensorDataError, match=reason):
+        conv.scan_from_msg(msg)
+
+
+class _Grid:
+    def __init__(self, data, resolution, origin_xy):
+        self.data, self.resolution, self.origin_xy = data, resolution, origin_xy
+
+
+def test_grid_round_trip(rng):
+    data = rng.choice(np.array([-1, 0, 100], np.int8), size=(4, 7))
+    msg = conv.grid_to_msg(_Grid(data, 0.05, (-1.5, 2.0)), 9, "map")
+    assert (msg.info.width, msg.info.height, msg.header.frame_id) == (7, 4, "map")
+    out, resolution, origin = conv.grid_from_msg(msg)
+    np.testing.assert_array_equal(out, data)
+    assert resolution == pytest.approx(0.05) and origin == (-1.5, 2.0)
+    # nav_msgs: row-major from cell (0, 0), x along columns.
+    assert msg.data[1] == data[0, 1]
+
+
+def test_path_is_ordered_by_id(random_se3):
+    poses = {5: random_se3(), 1: random_se3(), 3: random_se3()}
+    msg = conv.path_to_msg(poses, 11, "map")
+    assert msg.header.frame_id == "map" and all(p.header.frame_id == "map" for p in msg.poses)
+    out = conv.path_from_msg(msg)
+    for T, i in zip(out, [1, 3, 5]):
+        np.testing.assert_allclose(T, poses[i], atol=1e-12)
+
+
+def test_graph_markers_colour_links_by_type():
+    poses = {i: transforms.from_xy_yaw(float(i), 0.0, 0.0) for i in (1, 2, 3, 4)}
+    links = [Link(1, 2, LinkType.NEIGHBOR), Link(2, 3, LinkType.NEIGHBOR), Link(3, 1, LinkType.LOOP_INTRA),
+             Link(4, 1, LinkType.LOOP_INTER), Link(4, 99, LinkType.NEIGHBOR)]  # 99 unknown: skipped
+    msg = conv.graph_to_markers(poses, links, 0, "map")
+    assert msg.markers[0].action == Marker.DELETEALL
+    by_ns = {m.ns: m for m in msg.markers[1:]}
+    assert [p.x for p in by_ns["nodes"].points] == [1.0, 2.0, 3.0, 4.0]
+    assert len(by_ns["neighbor_links"].points) == 4
+    assert (by_ns["neighbor_links"].color.b, by_ns["neighbor_links"].color.r) == (1.0, 0.0)
+    intra, inter = by_ns["loop_closures_intra"], by_ns["loop_closures_inter"]
+    assert [p.x for p in intra.points] == [3.0, 1.0] and intra.color.r == 1.0 and intra.color.g == 0.0
+    assert [p.x for p in inter.points] == [4.0, 1.0] and inter.color.g == 1.0 and inter.color.r == 0.0
+    assert len({m.id for m in msg.markers[1:]}) == 4
+
+
+def test_statistics_round_trip():
+    class Stats:
+        def to_dict(self):
+            return {"location_id": 12, "loop_closure_id": 3, "highest_hypothesis_value": 0.25,
+                    "new_map": False, "timings_ms": {"bayes": 1.5}}
+
+    msg = conv.statistics_to_msg(Stats(), 5, "map")
+    assert msg.status[0].level == DiagnosticStatus.OK
+    assert "location 12" in msg.status[0].message and "loop closure 3" in msg.status[0].message
+    values = conv.statistics_from_msg(msg)
+    assert values == {"location_id": "12", "loop_closure_id": "3", "highest_hypothesis_value": "0.25",
+                      "new_map": "false", "timings_ms/bayes": "1.5"}
