@@ -1,0 +1,171 @@
+"""Discrete Bayes filter over loop closure hypotheses (2013 §III-C) and hypothesis selection (§III-D).
+
+States: ``S_t = -1`` (:data:`NEW_LOCATION`, the current location is new) and ``S_t = j`` for every
+location j in WM. Eq. 2: ``p(S_t | L^t) = η p(L_t | S_t) Σ_i p(S_t | S_t-1 = i) p(S_t-1 = i | L^t-1)``.
+
+The transition model spreads the belief of a location j over its graph neighbourhood (neighbour
+and loop closure links, hops counted through nodes that are not in WM too) with a discretised
+Gaussian of hop distance, restricted to WM and normalised to ``loop_closure_prior`` (0.9).
+Neighbourhoods are cached per location and invalidated around graph changes, so the prediction
+is a handful of numpy operations per frame rather than an N x N matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rtabmap_ros2.core.graph import Graph
+from rtabmap_ros2.core.params import BayesParams
+
+NEW_LOCATION = -1
+_EPSILON = 1e-9
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """The highest loop closure hypothesis of a frame."""
+
+    location_id: int  # 0 when there is none
+    probability: float
+    new_location_probability: float
+
+
+def likelihood(scores: dict[int, float]) -> dict[int, float]:
+    """Observation model (Eq. 3 and 4) from the Eq. 1 similarity of every WM location.
+
+    Args:
+        scores: location id -> similarity s_j in [0, 1] for every location in WM (zeros included).
+
+    Returns:
+        location id -> likelihood, plus :data:`NEW_LOCATION` -> likelihood of a new location.
+    """
+    values = np.fromiter(scores.values(), dtype=float, count=len(scores))
+    non_null = values[values > 0]
+    out = {loc: 1.0 for loc in scores}
+    if non_null.size == 0:
+        out[NEW_LOCATION] = 1.0
+        return out
+    mu = float(non_null.mean())
+    sigma = float(non_null.std())
+    # Eq. 3: only locations scoring above mu + sigma raise their likelihood above 1.
+    for loc, s in scores.items():
+        if s >= mu + sigma and s > 0:
+            out[loc] = (s - sigma) / mu
+    # Eq. 4: a new location is likely when no score stands out (sigma small relative to mu).
+    out[NEW_LOCATION] = mu / sigma + 1.0 if sigma > _EPSILON else 2.0
+    return out
+
+
+class TransitionModel:
+    """Cached Gaussian neighbourhoods of the transition model p(S_t = i | S_t-1 = j) (§III-C, 4)."""
+
+    def __init__(self, params: BayesParams, graph: Graph) -> None:
+        self._params = params
+        self._graph = graph
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        hops = np.arange(params.neighborhood + 1)
+        self._gaussian = np.exp(-0.5 * (hops / params.sigma) ** 2)
+
+    def invalidate_around(self, *node_ids: int) -> None:
+        """Forget the neighbourhoods that a link change at these nodes may have altered."""
+        for node in node_ids:
+            if node in self._graph:
+                for other in self._graph.hops_from(node, self._params.neighborhood):
+                    self._cache.pop(other, None)
+            self._cache.pop(node, None)
+
+    def clear(self) -> None:
+        self._cache.clear()
+
+    def neighbourhood(self, node_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, unnormalised Gaussian weights) of the nodes within ``neighborhood`` hops."""
+        cached = self._cache.get(node_id)
+        if cached is None:
+            hops = self._graph.hops_from(node_id, self._params.neighborhood)
+            ids = np.fromiter(hops.keys(), dtype=np.int64, count=len(hops))
+            dist = np.fromiter(hops.values(), dtype=np.int64, count=len(hops))
+            cached = (ids, self._gaussian[dist])
+            self._cache[node_id] = cached
+        return cached
+
+
+class BayesFilter:
+    """The recursive filter; its support follows WM as locations enter and leave it."""
+
+    def __init__(self, params: BayesParams, graph: Graph) -> None:
+        self.params = params
+        self.transitions = TransitionModel(params, graph)
+        self.posterior: dict[int, float] = {NEW_LOCATION: 1.0}
+
+    def reset(self) -> None:
+        self.posterior = {NEW_LOCATION: 1.0}
+
+    def predict(self, wm_ids: np.ndarray) -> np.ndarray:
+        """Belief (Eq. 2, right part) over ``[NEW_LOCATION, *wm_ids]`` from the previous posterior.
+
+        Args:
+            wm_ids: (N,) int64 ids of the WM locations that are hypotheses this frame, sorted.
+        """
+        p = self.params
+        n = len(wm_ids)
+        prior_new = self.posterior.get(NEW_LOCATION, 0.0)
+        prior = np.array([self.posterior.get(int(i), 0.0) for i in wm_ids])
+        # Locations that left WM take their belief with them; renormalise what remains.
+        total = prior_new + prior.sum()
+        if total <= _EPSILON:
+            prior_new, prior = 1.0, np.zeros(n)
+        else:
+            prior_new, prior = prior_new / total, prior / total
+        belief = np.zeros(n + 1)
+        # Transitions from S_t-1 = -1 (§III-C, 1 and 2).
+        belief[0] = p.virtual_place_prior * prior_new
+        if n:
+            belief[1:] = (1.0 - p.virtual_place_prior) * prior_new / n
+        # Transitions from S_t-1 = j (§III-C, 3 and 4).
+        belief[0] += (1.0 - p.loop_closure_prior) * prior.sum()
+        active = np.flatnonzero(prior > _EPSILON)
+        if active.size:
+            hoods = [self.transitions.neighbourhood(int(wm_ids[col])) for col in active]
+            ids = np.concatenate([h[0] for h in hoods])
+            weights = np.concatenate([h[1] for h in hoods])
+            cols = np.repeat(active, [h[0].size for h in hoods])
+            # Keep the neighbours that are WM hypotheses, then normalise each column to 0.9.
+            pos = np.minimum(np.searchsorted(wm_ids, ids), n - 1)
+            in_wm = wm_ids[pos] == ids
+            pos, weights, cols = pos[in_wm], weights[in_wm], cols[in_wm]
+            column_sums = np.bincount(cols, weights=weights, minlength=n)
+            spread = p.loop_closure_prior * weights / column_sums[cols] * prior[cols]
+            belief[1:] += np.bincount(pos, weights=spread, minlength=n)
+        return belief
+
+    def update(self, wm_ids: np.ndarray, observation: dict[int, float]) -> dict[int, float]:
+        """One filter step: predict, weight by the likelihood, normalise (Eq. 2).
+
+        Args:
+            wm_ids: (N,) int64 sorted ids of the WM locations that are hypotheses.
+            observation: likelihood per id and for :data:`NEW_LOCATION` (see :func:`likelihood`).
+        """
+        belief = self.predict(wm_ids)
+        like = np.empty(len(wm_ids) + 1)
+        like[0] = observation.get(NEW_LOCATION, 1.0)
+        like[1:] = [observation.get(int(i), 1.0) for i in wm_ids]
+        post = belief * like
+        total = post.sum()
+        post = post / total if total > _EPSILON else np.eye(1, len(post)).ravel()
+        self.posterior = {NEW_LOCATION: float(post[0])}
+        self.posterior.update(zip(wm_ids.tolist(), post[1:].tolist()))
+        return self.posterior
+
+    def highest(self) -> Hypothesis:
+        """Hypothesis selection (§III-D): the most probable loop closure state."""
+        best_id, best_p = 0, 0.0
+        for loc, prob in self.posterior.items():
+            if loc != NEW_LOCATION and prob > best_p:
+                best_id, best_p = loc, prob
+        return Hypothesis(best_id, best_p, self.posterior.get(NEW_LOCATION, 0.0))
+
+    def accepted(self, hypothesis: Hypothesis) -> bool:
+        """A hypothesis is a loop closure when its posterior reaches T_loop."""
+        return hypothesis.location_id > 0 and hypothesis.probability >= self.params.loop_threshold

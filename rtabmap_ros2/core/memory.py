@@ -1,0 +1,359 @@
+"""Short-Term, Working and Long-Term Memory (2013 §III, Fig. 2; 2014 §II-C).
+
+* STM: the newest ``T_STM`` locations; rehearsal (weight update, §III-B) happens here; they are
+  not loop closure hypotheses.
+* WM: locations used for loop closure detection and the local map; their words form the
+  vocabulary.
+* LTM: the SQLite database. Every location is written there when created (so a killed process
+  loses at most the frame in flight); *transfer* (Alg. 4) only drops a location from RAM and from
+  the vocabulary, *retrieval* (Alg. 3) brings it back.
+
+All database writes of a frame go in one :class:`WriteBatch` committed by the background writer
+(Alg. 1 line 17 joins it at the next frame).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Callable, Iterable
+
+import numpy as np
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.database import BackgroundWriter, Database, SensorBlobs, WriteBatch
+from rtabmap_ros2.core.graph import Graph, Link, LinkType, loop_type
+from rtabmap_ros2.core.params import Params
+from rtabmap_ros2.core.signature import Signature, similarity
+from rtabmap_ros2.core.vocabulary import Vocabulary
+
+log = logging.getLogger(__name__)
+
+
+class Memory:
+    """The memory of locations, its vocabulary, its graph and its database."""
+
+    def __init__(self, params: Params, database: Database, binary_descriptors: bool) -> None:
+        self.params = params
+        self.db = database
+        self.writer = BackgroundWriter(database)
+        self.graph = Graph(database.load_links())
+        # Session of every node, WM and LTM (ints only: tells intra- from inter-session links).
+        self.map_ids: dict[int, int] = {n: info.map_id for n, info in database.load_nodes().items()}
+        for node in self.map_ids:
+            self.graph.add_node(node)
+        self.vocabulary = Vocabulary(params.vocabulary, binary=binary_descriptors,
+                                     next_word_id=database.max_word_id() + 1)
+        self.signatures: dict[int, Signature] = {}
+        self.stm: list[int] = []
+        self.wm: dict[int, None] = {}  # insertion-ordered set
+        self.last_loop_closure_id = 0
+        self.next_location_id = database.max_location_id() + 1
+        self.map_id = database.max_map_id() + 1
+        self.words_added = 0
+        self.retrieved_now: list[int] = []
+        self.on_graph_change: Callable[..., None] = lambda *ids: None
+        self._batch = WriteBatch()
+        self._new_locations: dict[int, SensorBlobs | None] = {}
+        self._feature_sum = 0
+        self._feature_frames = 0
+        self._load_working_memory()
+
+    # -- reopening ---------------------------------------------------------------------------
+    def _load_working_memory(self) -> None:
+        """Reopen: what was in STM/WM becomes WM again; mapping continues in a new map (2014 §II-C)."""
+        ids = self.db.wm_ids()
+        if not ids:
+            return
+        signatures = self.db.load_signatures(ids)
+        missing = sorted({int(w) for s in signatures for w in s.word_ids.tolist()})
+        descriptors = self.db.load_words(missing)
+        if descriptors:
+            word_ids = np.fromiter(descriptors.keys(), dtype=np.int64, count=len(descriptors))
+            self.vocabulary.add_words(word_ids, np.stack(list(descriptors.values())))
+        for sig in signatures:
+            self.signatures[sig.id] = sig
+            self.wm[sig.id] = None
+            self.vocabulary.add_references(sig.id, sig.word_ids)
+            if not sig.bad:
+                self._feature_sum += len(sig.word_ids)
+                self._feature_frames += 1
+        log.info("reopened %s: %d locations in WM, %d words, continuing as map %d",
+                 self.db.path, len(self.wm), len(self.vocabulary), self.map_id)
+
+    # -- sizes -------------------------------------------------------------------------------
+    @property
+    def ltm_size(self) -> int:
+        return len(self.graph) - len(self.signatures)
+
+    def last_location(self) -> Signature | None:
+        """The newest location in STM (or WM when STM is empty)."""
+        if self.stm:
+            return self.signatures[self.stm[-1]]
+        return self.signatures[next(reversed(self.wm))] if self.wm else None
+
+    # -- location creation (Alg. 2) and bad signatures -----------------------------------------
+    def is_bad_signature(self, n_features: int) -> bool:
+        """T_bad: fewer features than ``T_bad`` x the average features per image (§III-A)."""
+        self._feature_sum += n_features
+        self._feature_frames += 1
+        average = self._feature_sum / self._feature_frames
+        return n_features == 0 or n_features < self.params.memory.bad_signature_ratio * average
+
+    def quantize(self, descriptors: np.ndarray) -> np.ndarray:
+        """Quantise descriptors to words, adding the unmatched ones to the vocabulary (§III-A)."""
+        if len(descriptors) == 0:
+            return np.zeros(0, np.int64)
+        word_ids, is_new = self.vocabulary.quantize(descriptors)
+        new_ids = word_ids[is_new]
+        for word_id, desc in zip(new_ids.tolist(), descriptors[is_new]):
+            self._batch.words[word_id] = desc
+        self.words_added += int(is_new.sum())
+        return word_ids
+
+    def add_location(self, sig: Signature, blobs: SensorBlobs | None, neighbor: Link | None) -> None:
+        """Insert a new location in STM with its neighbour link (Alg. 1 line 7)."""
+        self.signatures[sig.id] = sig
+        self.map_ids[sig.id] = sig.map_id
+        self.stm.append(sig.id)
+        self.graph.add_node(sig.id)
+        self.vocabulary.add_references(sig.id, sig.word_ids)
+        self._new_locations[sig.id] = blobs
+        if neighbor is not None:
+            self.add_link(neighbor)
+
+    def add_link(self, link: Link) -> None:
+        self.graph.add_link(link)
+        self._batch.links.append(link)
+        self.on_graph_change(link.from_id, link.to_id)
+
+    def remove_link(self, a: int, b: int) -> None:
+        """Drop a link (e.g. a loop closure the robust optimiser found inconsistent)."""
+        self.on_graph_change(a, b)
+        self.graph.remove_link(a, b)
+        self._batch.deleted_links.append((a, b))
+        self.on_graph_change(a, b)
+
+    # -- weight update / rehearsal (§III-B, Eq. 1) ------------------------------------------------
+    def rehearse(self, sig: Signature, new_word_ids: Iterable[int]) -> int:
+        """Merge the previous STM location into ``sig`` when Eq. 1 reaches T_similarity.
+
+        Returns the id of the merged (deleted) location, or 0.
+        """
+        if sig.bad or len(self.stm) < 2:
+            return 0
+        prev = self.signatures[self.stm[-2]]
+        if prev.bad or prev.map_id != sig.map_id:
+            return 0
+        if similarity(sig.word_counts(), prev.word_counts()) < self.params.memory.rehearsal_similarity:
+            return 0
+        # z_t is cleared and z_c copied into it; the words L_t had just added leave the vocabulary.
+        self.vocabulary.remove_references(sig.id, sig.word_ids)
+        fresh = [w for w in new_word_ids if not self.vocabulary.references(w)]
+        if fresh:
+            self.vocabulary.remove_words(np.asarray(fresh, dtype=np.int64))
+            for w in fresh:
+                self._batch.words.pop(w, None)
+            self.words_added -= len(fresh)
+        T_t_c = transforms.identity()
+        if sig.T_odom_base is not None and prev.T_odom_base is not None:
+            T_t_c = transforms.relative(sig.T_odom_base, prev.T_odom_base)
+        sig.word_ids = prev.word_ids
+        sig.keypoints = prev.keypoints
+        sig.points3d = _transform_points(T_t_c, prev.points3d)
+        self.vocabulary.add_references(sig.id, sig.word_ids)
+        self.vocabulary.remove_references(prev.id, prev.word_ids)
+        # Weight of L_t increased by L_c's plus one; L_c's links redirected to L_t; L_c deleted.
+        sig.weight += prev.weight + 1
+        self.on_graph_change(prev.id)
+        for link in self.graph.remove_node(prev.id):
+            self._batch.deleted_links.append((link.from_id, link.to_id))
+            if link.to_id == sig.id:
+                continue
+            other_map = self._map_id_of(link.to_id)
+            kind = LinkType.NEIGHBOR if link.type is LinkType.NEIGHBOR else loop_type(sig.map_id, other_map)
+            self.add_link(Link(sig.id, link.to_id, kind, T_t_c @ link.T_from_to, link.information))
+        self.stm.remove(prev.id)
+        del self.signatures[prev.id]
+        del self.map_ids[prev.id]
+        self._new_locations.pop(prev.id, None)
+        self._batch.deleted_locations.append(prev.id)
+        if self.last_loop_closure_id == prev.id:
+            self.last_loop_closure_id = sig.id
+        self.on_graph_change(sig.id)
+        return prev.id
+
+    def _map_id_of(self, node_id: int) -> int:
+        return self.map_ids[node_id]
+
+    # -- STM -> WM ------------------------------------------------------------------------------
+    def update_stm(self) -> None:
+        """Move the oldest STM locations to WM while STM holds more than T_STM (Alg. 1 l. 9-10)."""
+        while len(self.stm) > self.params.memory.stm_size:
+            self.wm[self.stm.pop(0)] = None
+
+    def flush_stm(self) -> None:
+        """A new map starts: the previous session's STM joins WM (memory is kept, 2014 §III)."""
+        for node in self.stm:
+            self.wm[node] = None
+        self.stm.clear()
+
+    # -- Bayes filter support -------------------------------------------------------------------
+    def hypothesis_ids(self) -> np.ndarray:
+        """Sorted ids of WM locations that can be loop closure hypotheses (not bad signatures)."""
+        ids = [i for i in self.wm if not self.signatures[i].bad]
+        return np.asarray(sorted(ids), dtype=np.int64)
+
+    def similarities(self, sig: Signature, candidates: np.ndarray) -> dict[int, float]:
+        """Eq. 1 between ``sig`` and every candidate (0 for those sharing no word)."""
+        counts = sig.word_counts()
+        n_t = len(sig.word_ids)
+        pairs = self.vocabulary.scores(counts, set(candidates.tolist()))
+        out = dict.fromkeys(candidates.tolist(), 0.0)
+        for loc, n_pair in pairs.items():
+            out[loc] = n_pair / max(n_t, len(self.signatures[loc].word_ids))
+        return out
+
+    def add_loop_closure(self, link: Link) -> None:
+        """Loop closure link and weight transfer (§III-D): w_t += w_i, w_i = 0."""
+        current = self.signatures[link.from_id]
+        old = self.signatures[link.to_id]
+        current.weight += old.weight
+        old.weight = 0
+        self._batch.weights[old.id] = 0
+        self.last_loop_closure_id = max(current.id, old.id)
+        self.add_link(link)
+
+    # -- retrieval (Alg. 3) ---------------------------------------------------------------------
+    def retrieval_candidates(self, hypothesis_id: int) -> list[int]:
+        """LTM neighbours of the hypothesis: time neighbours first, then space neighbours (§III-E)."""
+        reach = self.params.bayes.neighborhood
+        if hypothesis_id not in self.graph:
+            return []
+        time_hops = self.graph.hops_from(hypothesis_id, reach, types=(LinkType.NEIGHBOR,))
+        all_hops = self.graph.hops_from(hypothesis_id, reach)
+        in_ltm = [n for n in time_hops if n not in self.signatures]
+        ordered = sorted(in_ltm, key=lambda n: (time_hops[n], n))
+        rest = sorted((n for n in all_hops if n not in self.signatures and n not in time_hops),
+                      key=lambda n: (all_hops[n], n))
+        return ordered + rest
+
+    def retrieve(self, hypothesis_id: int) -> list[int]:
+        """Bring up to ``max_retrieved`` locations around the hypothesis back from LTM to WM."""
+        ids = self.retrieval_candidates(hypothesis_id)[: self.params.memory.max_retrieved]
+        if not ids:
+            return []
+        for sig in self.db.load_signatures(ids):
+            self._requantize(sig)
+            self.signatures[sig.id] = sig
+            self.wm[sig.id] = None
+            self.vocabulary.add_references(sig.id, sig.word_ids)
+            self._batch.in_wm[sig.id] = True
+        self.retrieved_now.extend(ids)
+        return ids
+
+    def _requantize(self, sig: Signature) -> None:
+        """Old words no longer in the vocabulary are matched to current ones, or re-added (Alg. 3)."""
+        words = sig.word_ids
+        gone = np.unique(words[[not self.vocabulary.contains(int(w)) for w in words.tolist()]]) \
+            if len(words) else np.zeros(0, np.int64)
+        if not len(gone):
+            return
+        descriptors = self.db.load_words(gone.tolist())
+        gone = np.asarray([w for w in gone.tolist() if w in descriptors], dtype=np.int64)
+        if not len(gone):
+            return
+        desc = np.stack([descriptors[int(w)] for w in gone])
+        matched = self.vocabulary.match(desc)
+        replace = matched >= 0
+        if replace.any():
+            mapping = dict(zip(gone[replace].tolist(), matched[replace].tolist()))
+            sig.word_ids = np.asarray([mapping.get(w, w) for w in words.tolist()], dtype=np.int64)
+            self._batch.location_words[sig.id] = sig.word_ids
+        if (~replace).any():
+            self.vocabulary.add_words(gone[~replace], desc[~replace])
+            self.words_added += int((~replace).sum())
+
+    # -- transfer (Alg. 4) ----------------------------------------------------------------------
+    def transfer(self, protected: set[int]) -> list[int]:
+        """Move the oldest of the lowest-weighted WM locations to LTM until as many words left
+        the vocabulary as came in this frame (at least one location)."""
+        immune = set(protected) | set(self.retrieved_now) | self._recent_immune()
+        per_map: dict[int, int] = {}
+        for node in self.wm:
+            m = self.signatures[node].map_id
+            per_map[m] = per_map.get(m, 0) + 1
+        candidates = sorted((self.signatures[n].weight, n) for n in self.wm if n not in immune)
+        wanted = max(self.words_added, 1)
+        transferred: list[int] = []
+        words_out = 0
+        for _, node in candidates:
+            if words_out >= wanted:
+                break
+            sig = self.signatures[node]
+            if self.params.memory.keep_one_node_per_session and per_map[sig.map_id] <= 1:
+                continue
+            orphans = self.vocabulary.remove_references(node, sig.word_ids)
+            if orphans:
+                self.vocabulary.remove_words(np.asarray(orphans, dtype=np.int64))
+            words_out += len(orphans)
+            per_map[sig.map_id] -= 1
+            del self.wm[node]
+            del self.signatures[node]
+            self._batch.in_wm[node] = False
+            self._batch.weights[node] = sig.weight
+            transferred.append(node)
+        return transferred
+
+    def _recent_immune(self) -> set[int]:
+        """T_recent: the highest-weighted WM locations after the last loop closure (§III-F)."""
+        budget = int(self.params.memory.recent_wm_ratio * len(self.wm))
+        if budget <= 0:
+            return set()
+        recent = [n for n in self.wm if n > self.last_loop_closure_id]
+        ranked = sorted(recent, key=lambda n: (self.signatures[n].weight, n), reverse=True)
+        return set(ranked[:budget])
+
+    def time_neighbours(self, node_id: int) -> set[int]:
+        """Neighbours in time of a node within the transition model's range (protected from transfer)."""
+        if node_id not in self.graph:
+            return set()
+        return set(self.graph.hops_from(node_id, self.params.bayes.neighborhood, types=(LinkType.NEIGHBOR,)))
+
+    # -- database --------------------------------------------------------------------------------
+    def record_statistics(self, row: dict) -> None:
+        self._batch.statistics.append(row)
+
+    def commit(self) -> None:
+        """Hand this frame's changes to the background writer (one transaction)."""
+        batch = self._batch
+        for node, blobs in self._new_locations.items():
+            sig = self.signatures.get(node)
+            if sig is not None:
+                batch.locations.append((sig, blobs))
+                batch.in_wm[node] = node in self.signatures
+        for node in list(batch.weights):
+            if node in self.signatures:
+                batch.weights[node] = self.signatures[node].weight
+        self.writer.submit(batch)
+        self._batch = WriteBatch()
+        self._new_locations = {}
+        self.words_added = 0
+        self.retrieved_now = []
+
+    def join(self) -> None:
+        """Wait for the previous frame's database writes (Alg. 1 line 17)."""
+        self.writer.join()
+
+    def close(self) -> None:
+        """Write what is pending and close the database."""
+        self.commit()
+        self.writer.join()
+        self.db.close()
+
+
+def _transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N,3) points (NaN rows stay NaN)."""
+    if not len(points):
+        return points
+    out = points.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    return out.astype(np.float32)

@@ -1,0 +1,485 @@
+"""Algorithm 1 of the 2013 paper, extended into the graph SLAM of the 2014 paper.
+
+One call of :meth:`Rtabmap.process` per synchronised frame:
+
+1. location creation (Alg. 2): features, quantisation to the incremental vocabulary, bad
+   signature check, 3D word positions from depth;
+2. a new map (session) starts on an odometry reset (2014 §III);
+3. STM insertion with a neighbour link, weight update / rehearsal (§III-B), STM -> WM;
+4. Bayes filter over WM (§III-C) and hypothesis selection with T_loop (§III-D);
+5. loop closure verification: RANSAC on 3D words, 2D ICP refinement (2014 §II-A) -> link;
+6. join of the previous frame's database writes (Alg. 1 line 17), retrieval (Alg. 3);
+7. local map optimisation rooted at the newest node (2014 §II-B, C);
+8. pTime; transfer WM -> LTM when pTime > T_time (Alg. 4); this frame's writes go to the
+   background writer.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
+from rtabmap_ros2.core.database import Database, SensorBlobs, encode_depth, encode_rgb
+from rtabmap_ros2.core.features import FeatureExtractor, Features
+from rtabmap_ros2.core.graph import Graph, Link, LinkType, chain_poses, default_information, loop_type
+from rtabmap_ros2.core.memory import Memory
+from rtabmap_ros2.core.optimizer import optimize
+from rtabmap_ros2.core.params import Params
+from rtabmap_ros2.core.registration import register, words_3d
+from rtabmap_ros2.core.sensor import SensorFrame
+from rtabmap_ros2.core.signature import Signature
+from rtabmap_ros2.errors import OptimizationError, RegistrationError, SensorDataError
+
+log = logging.getLogger(__name__)
+
+# rtabmap_ros convention: an odometry covariance this large means odometry was lost / reset.
+ODOM_RESET_VARIANCE = 9999.0
+# An odometry reset puts the robot back at the origin: within this heading as well (rad).
+ODOM_RESET_MAX_ANGLE = 0.2
+TIMING_KEYS = ("features", "quantization", "rehearsal", "bayes", "verification", "retrieval",
+               "optimization", "transfer", "database")
+
+
+@dataclass
+class Statistics:
+    """What happened to one frame (one row of ``detections.csv``, one ``info`` message)."""
+
+    frame_index: int
+    stamp_ns: int
+    location_id: int = 0
+    map_id: int = 0
+    loop_closure_id: int = 0
+    loop_closure_type: str = ""
+    rejected_loop_closure_id: int = 0
+    highest_hypothesis_id: int = 0
+    highest_hypothesis_value: float = 0.0
+    process_time_ms: float = 0.0
+    total_time_ms: float = 0.0
+    wm_size: int = 0
+    stm_size: int = 0
+    ltm_size: int = 0
+    vocabulary_size: int = 0
+    words_added: int = 0
+    retrieved: int = 0
+    transferred: int = 0
+    local_map_size: int = 0
+    new_map: bool = False
+    merged_id: int = 0
+    bad_signature: bool = False
+    localized: bool = False
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """Flat dict (timings as ``time_<step>_ms``) for CSV rows, the database and ``info``."""
+        out = asdict(self)
+        timings = out.pop("timings_ms")
+        out.update({f"time_{k}_ms": round(float(timings.get(k, 0.0)), 3) for k in TIMING_KEYS})
+        return out
+
+
+@dataclass
+class LocalMap:
+    """The optimised local map (2014 §II-C): WM nodes connected to the newest node."""
+
+    poses: dict[int, np.ndarray]
+    links: list[Link]
+    map_ids: dict[int, int]
+    T_map_odom: np.ndarray
+
+
+class _Stopwatch:
+    """Accumulates named step durations (ms)."""
+
+    def __init__(self) -> None:
+        self.ms: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.ms[name] = self.ms.get(name, 0.0) + (now - self._t) * 1000.0
+        self._t = now
+
+
+class Rtabmap:
+    """Memory-managed loop closure detection and multi-session graph SLAM over one database."""
+
+    def __init__(self, params: Params, database_path: str | os.PathLike, *, delete_existing: bool = False) -> None:
+        self.params = params
+        self.database_path = Path(database_path).expanduser()
+        if delete_existing:
+            _delete_database(self.database_path)
+        self.extractor = FeatureExtractor(params.features)
+        self._open()
+
+    def _open(self) -> None:
+        self.db = Database(self.database_path)
+        self.db.set_parameters(self.params.to_dict())
+        self.memory = Memory(self.params, self.db, self.extractor.binary)
+        self.bayes = BayesFilter(self.params.bayes, self.memory.graph)
+        self.memory.on_graph_change = self.bayes.transitions.invalidate_around
+        statistics = self.db.load_statistics()
+        self.frame_index = max((int(r.get("frame_index", -1)) for r in statistics), default=-1) + 1
+        self.localization_mode = False
+        self.localization_pose: Optional[np.ndarray] = None
+        self._optimized: dict[int, np.ndarray] = {}
+        self._local_links: list[Link] = []
+        self._T_map_odom = transforms.identity()
+        self._planar: Optional[bool] = None
+        self._last_odom: Optional[np.ndarray] = None
+        self._session_nodes = 0
+        self._new_map_requested = False
+
+    # -- public API ----------------------------------------------------------------------------
+    @property
+    def map_id(self) -> int:
+        return self.memory.map_id
+
+    def process(self, frame: SensorFrame, location_id: int | None = None) -> Statistics:
+        """Process one frame (Alg. 1). Bad frames raise :class:`SensorDataError`, storing nothing.
+
+        Args:
+            frame: the synchronised sensor data.
+            location_id: id to give the new location (e.g. the image index of ``detect``);
+                default: the next free id. Must be larger than every id already used.
+        """
+        frame.validate()
+        if location_id is not None and location_id < self.memory.next_location_id:
+            raise SensorDataError(
+                f"location id {location_id} is not larger than the last one ({self.memory.next_location_id - 1})")
+        t_start = time.perf_counter()
+        watch = _Stopwatch()
+        # Location creation (Alg. 2), lines 2-3: features (excluded from pTime, 2013 §IV).
+        features = self._extract(frame)
+        watch.lap("features")
+        t_process = time.perf_counter()
+        stats = Statistics(frame_index=self.frame_index, stamp_ns=frame.stamp_ns)
+        self.frame_index += 1
+        stats.new_map = self._maybe_start_new_map(frame)
+        stats.map_id = self.memory.map_id
+        self._check_planar(frame)
+        if self.localization_mode:
+            hypothesis = self._localize(frame, features, stats, watch)
+        else:
+            hypothesis = self._map(frame, features, stats, watch, location_id)
+        # Alg. 1 line 17: join the thread writing the previous frame to LTM (counts in pTime).
+        self.memory.join()
+        watch.lap("database")
+        # Retrieval (Alg. 3): neighbours of the highest hypothesis come back from LTM.
+        if hypothesis.location_id:
+            stats.retrieved = len(self.memory.retrieve(hypothesis.location_id))
+        watch.lap("retrieval")
+        # Local map (2014 §II-C), optimised every frame; graph work counts in pTime.
+        if stats.location_id and frame.T_odom_base is not None:
+            self._update_local_map(stats.location_id)
+        watch.lap("optimization")
+        stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
+        # Transfer (Alg. 4) when pTime > T_time.
+        threshold = self.params.memory.time_threshold_ms
+        if threshold > 0 and stats.process_time_ms > threshold:
+            protected = self.memory.time_neighbours(hypothesis.location_id) if hypothesis.location_id else set()
+            transferred = self.memory.transfer(protected)
+            stats.transferred = len(transferred)
+            for node in transferred:
+                self._optimized.pop(node, None)
+        watch.lap("transfer")
+        self._fill_sizes(stats)
+        stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
+        stats.timings_ms = watch.ms
+        self.memory.record_statistics(stats.to_dict())
+        self.memory.commit()
+        return stats
+
+    def local_map(self) -> LocalMap:
+        """The optimised local map of the newest node (poses in the map frame)."""
+        return LocalMap(dict(self._optimized), list(self._local_links),
+                        {n: self.memory.map_ids[n] for n in self._optimized}, self._T_map_odom.copy())
+
+    def local_grid(self):
+        """Occupancy grid of the local map from the nodes' laser scans, or None without scans."""
+        from rtabmap_ros2.core.grid import build_grid
+
+        scans = {n: self.memory.signatures[n].scan for n in self._optimized
+                 if n in self.memory.signatures and self.memory.signatures[n].scan is not None}
+        if not scans:
+            return None
+        return build_grid({n: self._optimized[n] for n in scans}, scans, self.params.grid)
+
+    def trigger_new_map(self) -> int:
+        """Start a new map (session) at the next frame; returns its id."""
+        if self._session_nodes:
+            self._new_map_requested = True
+            return self.memory.map_id + 1
+        return self.memory.map_id
+
+    def reset(self) -> None:
+        """Forget everything: the database is deleted and a new empty one started."""
+        self.memory.close()
+        _delete_database(self.database_path)
+        self._open()
+
+    def flush(self) -> None:
+        """Commit everything processed so far to the database."""
+        self.memory.commit()
+        self.memory.join()
+
+    def backup(self, path: str | os.PathLike) -> Path:
+        """Flush, then copy the database to ``path`` (SQLite online backup)."""
+        self.flush()
+        self.db.backup(path)
+        return Path(path)
+
+    def close(self) -> None:
+        """Flush and close the database."""
+        self.memory.close()
+
+    def __enter__(self) -> "Rtabmap":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- steps ---------------------------------------------------------------------------------
+    def _extract(self, frame: SensorFrame) -> Features:
+        if frame.rgb is None:
+            return Features(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32))
+        return self.extractor.extract(frame.rgb)
+
+    def _maybe_start_new_map(self, frame: SensorFrame) -> bool:
+        """Multi-session (2014 §III): a new map on request or when odometry was reset."""
+        reset = False
+        pose = frame.T_odom_base
+        if pose is not None and self._last_odom is not None:
+            cov = frame.odom_covariance
+            lost = cov is not None and cov[0, 0] >= ODOM_RESET_VARIANCE
+            back_home = (np.linalg.norm(pose[:3, 3]) < self.params.graph.odom_reset_distance
+                         and transforms.rotation_angle(pose) < ODOM_RESET_MAX_ANGLE)
+            had_moved = np.linalg.norm(self._last_odom[:3, 3]) > self.params.graph.odom_reset_min_travel
+            reset = lost or (back_home and had_moved)
+        self._last_odom = pose
+        if not (reset or self._new_map_requested) or not self._session_nodes:
+            self._new_map_requested = False
+            return False
+        self._new_map_requested = False
+        self.memory.flush_stm()
+        self.memory.map_id += 1
+        self._session_nodes = 0
+        self.bayes.reset()
+        log.info("new map %d (%s)", self.memory.map_id, "odometry reset" if reset else "requested")
+        return True
+
+    def _check_planar(self, frame: SensorFrame) -> None:
+        """Planar (3 DoF) mode: the parameter, with a laser (2014 §III: the robot is on a plane)."""
+        if self._planar is None and frame.T_odom_base is not None:
+            self._planar = bool(self.params.registration.planar and frame.scan is not None)
+
+    def _map(self, frame: SensorFrame, features: Features, stats: Statistics, watch: _Stopwatch,
+             location_id: int | None) -> Hypothesis:
+        memory = self.memory
+        node_id = location_id if location_id is not None else memory.next_location_id
+        memory.next_location_id = node_id + 1
+        bad = memory.is_bad_signature(len(features.keypoints))
+        stats.bad_signature = bad
+        if bad and frame.T_odom_base is None:
+            # Alg. 1 lines 4-5: a bad signature is deleted (appearance-only mode has no graph
+            # to keep it in; with odometry it stays as a node without words).
+            watch.lap("quantization")
+            return Hypothesis(0, 0.0, 1.0)
+        if bad:
+            word_ids = np.zeros(0, np.int64)
+            new_words: list[int] = []
+            features = Features(np.zeros((0, 2), np.float32), features.descriptors[:0], np.zeros(0, np.float32))
+        else:
+            before = memory.vocabulary.next_word_id
+            word_ids = memory.quantize(features.descriptors)
+            new_words = [w for w in word_ids.tolist() if w >= before]
+        points3d = np.full((len(word_ids), 3), np.nan, np.float32)
+        if frame.depth_m is not None and frame.camera is not None and len(word_ids):
+            points3d = words_3d(features.keypoints, frame.depth_m, frame.camera)
+        watch.lap("quantization")
+        sig = Signature(id=node_id, map_id=memory.map_id, stamp_ns=frame.stamp_ns, word_ids=word_ids,
+                        keypoints=features.keypoints, points3d=points3d, T_odom_base=frame.T_odom_base,
+                        scan=frame.scan, camera=frame.camera, bad=bad)
+        blobs = SensorBlobs(encode_rgb(frame.rgb) if frame.rgb is not None else None,
+                            encode_depth(frame.depth_m) if frame.depth_m is not None else None)
+        watch.lap("database")
+        # Alg. 1 line 7: insert into STM with a neighbour link to the previous location.
+        previous = memory.last_location()
+        neighbor = None
+        if previous is not None and previous.map_id == sig.map_id:
+            T = transforms.identity()
+            if previous.T_odom_base is not None and sig.T_odom_base is not None:
+                T = transforms.relative(previous.T_odom_base, sig.T_odom_base)
+            neighbor = Link(previous.id, sig.id, LinkType.NEIGHBOR, T, self._odometry_information(frame))
+        memory.add_location(sig, blobs, neighbor)
+        self._session_nodes += 1
+        stats.location_id = sig.id
+        # Weight update (§III-B) and STM -> WM (Alg. 1 lines 8-10).
+        stats.merged_id = memory.rehearse(sig, new_words)
+        memory.update_stm()
+        watch.lap("rehearsal")
+        if bad:
+            return Hypothesis(0, 0.0, 1.0)
+        # Bayes filter update in WM (Eq. 2-4) and hypothesis selection (§III-D).
+        hypothesis = self._hypothesis(sig)
+        stats.highest_hypothesis_id = hypothesis.location_id
+        stats.highest_hypothesis_value = hypothesis.probability
+        watch.lap("bayes")
+        if self.bayes.accepted(hypothesis):
+            old = memory.signatures[hypothesis.location_id]
+            try:
+                link = self._verify(sig, old)
+            except RegistrationError as exc:
+                stats.rejected_loop_closure_id = old.id
+                log.debug("loop closure %d -> %d rejected: %s", sig.id, old.id, exc)
+            else:
+                memory.add_loop_closure(link)
+                stats.loop_closure_id = old.id
+                stats.loop_closure_type = link.type.value
+        watch.lap("verification")
+        return hypothesis
+
+    def _hypothesis(self, sig: Signature) -> Hypothesis:
+        candidates = self.memory.hypothesis_ids()
+        if not len(candidates) or not len(sig.word_ids):
+            return Hypothesis(0, 0.0, self.bayes.posterior.get(-1, 1.0))
+        scores = self.memory.similarities(sig, candidates)
+        self.bayes.update(candidates, likelihood(scores))
+        return self.bayes.highest()
+
+    def _verify(self, current: Signature, old: Signature) -> Link:
+        """Loop closure verification (2014 §II-A): a link, or RegistrationError to reject it."""
+        kind = loop_type(current.map_id, old.map_id)
+        if current.T_odom_base is None:
+            # Appearance-only mode (2013): the Bayes filter's decision is the loop closure.
+            return Link(current.id, old.id, kind, transforms.identity(),
+                        default_information(self.params.graph.loop_closure_variance))
+        params = replace(self.params.registration, planar=bool(self._planar))
+        reg = register(current, old, params)
+        return Link(current.id, old.id, kind, reg.T_from_to, reg.information)
+
+    def _odometry_information(self, frame: SensorFrame) -> np.ndarray:
+        """Information of a neighbour link: the odometry covariance when it is usable."""
+        default = self.params.graph.odom_default_variance
+        cov = frame.odom_covariance
+        if cov is None:
+            return default_information(default)
+        variances = np.diag(cov).astype(float).copy()
+        variances[~(variances > 0) | (variances >= ODOM_RESET_VARIANCE)] = default
+        return np.diag(1.0 / variances)
+
+    def _localize(self, frame: SensorFrame, features: Features, stats: Statistics,
+                  watch: _Stopwatch) -> Hypothesis:
+        """Localization mode: match against WM without adding a location; publish the pose."""
+        memory = self.memory
+        self.localization_pose = None
+        word_ids = memory.vocabulary.match(features.descriptors) if len(features.descriptors) else np.zeros(0, np.int64)
+        known = word_ids >= 0
+        points3d = np.full((len(word_ids), 3), np.nan, np.float32)
+        if frame.depth_m is not None and frame.camera is not None and len(word_ids):
+            points3d = words_3d(features.keypoints, frame.depth_m, frame.camera)
+        sig = Signature(id=0, map_id=memory.map_id, stamp_ns=frame.stamp_ns, word_ids=word_ids[known],
+                        keypoints=features.keypoints[known], points3d=points3d[known],
+                        T_odom_base=frame.T_odom_base, scan=frame.scan, camera=frame.camera)
+        watch.lap("quantization")
+        hypothesis = self._hypothesis(sig)
+        stats.highest_hypothesis_id = hypothesis.location_id
+        stats.highest_hypothesis_value = hypothesis.probability
+        watch.lap("bayes")
+        if self.bayes.accepted(hypothesis) and frame.T_odom_base is not None:
+            old = memory.signatures[hypothesis.location_id]
+            try:
+                link = self._verify(sig, old)
+                poses = self._optimized if old.id in self._optimized else self._optimize_component(old.id)
+            except (RegistrationError, OptimizationError) as exc:
+                stats.rejected_loop_closure_id = old.id
+                log.debug("localization on %d rejected: %s", old.id, exc)
+            else:
+                self.localization_pose = poses[old.id] @ transforms.inverse(link.T_from_to)
+                self._T_map_odom = self.localization_pose @ transforms.inverse(frame.T_odom_base)
+                stats.loop_closure_id = old.id
+                stats.localized = True
+        watch.lap("verification")
+        return hypothesis
+
+    def _optimize_component(self, root: int) -> dict[int, np.ndarray]:
+        """Optimised poses of the WM nodes connected to ``root`` (root at its odometry pose)."""
+        memory = self.memory
+        component = memory.graph.component(root, allowed=memory.signatures)
+        links = _links_within(memory.graph, component)
+        root_pose = memory.signatures[root].T_odom_base
+        guess = _warm_start(root, root_pose, links, self._optimized)
+        if not any(link.type.is_loop_closure for link in links):
+            return guess
+        result = optimize(guess, links, root, self.params.graph, planar=bool(self._planar))
+        for link in result.rejected:
+            # Robust option: a loop closure inconsistent with the graph is removed from the map.
+            log.info("loop closure %d -> %d rejected by the optimiser", link.from_id, link.to_id)
+            memory.remove_link(link.from_id, link.to_id)
+        return result.poses
+
+    def _update_local_map(self, newest: int) -> None:
+        """Optimise the local map rooted at the newest node (2014 §II-B, C)."""
+        memory = self.memory
+        if memory.signatures[newest].T_odom_base is None:
+            return
+        poses = self._optimize_component(newest)
+        self._optimized = poses
+        self._local_links = _links_within(memory.graph, set(poses))
+        self._T_map_odom = poses[newest] @ transforms.inverse(memory.signatures[newest].T_odom_base)
+
+    def _fill_sizes(self, stats: Statistics) -> None:
+        memory = self.memory
+        stats.wm_size = len(memory.wm)
+        stats.stm_size = len(memory.stm)
+        stats.ltm_size = memory.ltm_size
+        stats.vocabulary_size = len(memory.vocabulary)
+        stats.words_added = memory.words_added
+        stats.local_map_size = len(self._optimized)
+
+
+def _links_within(graph: Graph, nodes: set[int]) -> list[Link]:
+    """Links whose two ends are in ``nodes``, each once."""
+    out = []
+    for node in nodes:
+        for link in graph.links_of(node):
+            if link.to_id in nodes and node < link.to_id:
+                out.append(link)
+    return out
+
+
+def _warm_start(root: int, root_pose: np.ndarray, links: list[Link],
+                previous: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """Initial guess: the previous optimised poses, new nodes chained from them by their links,
+    all moved rigidly so the root sits at ``root_pose``."""
+    chained = chain_poses(root, root_pose, links)
+    known = {n: previous[n] for n in chained if n in previous}
+    if not known:
+        return chained
+    graph = Graph(links)
+    poses = dict(known)
+    frontier = list(known)
+    while frontier:
+        nxt = []
+        for node in frontier:
+            for link in graph.links_of(node):
+                if link.to_id not in poses:
+                    poses[link.to_id] = poses[node] @ link.T_from_to
+                    nxt.append(link.to_id)
+        frontier = nxt
+    align = root_pose @ transforms.inverse(poses[root])
+    return {n: align @ p for n, p in poses.items()}
+
+
+def _delete_database(path: Path) -> None:
+    for suffix in ("", "-wal", "-shm"):
+        candidate = Path(f"{path}{suffix}")
+        if candidate.exists():
+            candidate.unlink()
