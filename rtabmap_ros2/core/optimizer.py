@@ -1,0 +1,364 @@
+"""Graph optimisation (2014 §II-B) with gtsam, and g2o file input/output.
+
+The paper used TORO with the newest node as the root of the tree: with several sessions each
+having its own origin, the newest node is the one node always uniquely defined. Here the root is
+held fixed by a strong prior at its given pose and every link becomes a ``BetweenFactor``
+(Pose2 when the robot is planar, Pose3 otherwise), optimised by Levenberg-Marquardt,
+Gauss-Newton or Powell's dogleg.
+
+Robust mode: loop closures get dynamic covariance scaling (DCS, Agarwal et al. 2013). After the
+optimisation each loop closure's DCS scale ``s = min(1, 2 phi / (phi + chi2_i))`` is computed from
+its whitened squared error ``chi2_i``; those with ``s < robust_reject_scale`` are dropped as
+inconsistent with the rest of the graph and the graph is re-optimised without them.
+
+Graph content: only nodes in ``poses`` are optimised; links with an end outside ``poses`` are
+ignored (the local map case: the node at the other end is in LTM). Nodes not connected to the
+root raise :class:`~rtabmap_ros2.errors.OptimizationError`: callers pass one connected component
+(``graph.connected_components``), since a disconnected part has no defined pose in the root's frame.
+
+Information order: our 6x6 matrices are over (x, y, z, roll, pitch, yaw); gtsam's Pose3 tangent
+is (rx, ry, rz, tx, ty, tz) and Pose2's is (x, y, theta).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.graph import Link, LinkType, chain_poses, connected_components
+from rtabmap_ros2.core.params import GraphParams
+from rtabmap_ros2.errors import OptimizationError
+
+logger = logging.getLogger(__name__)
+
+# DCS parameter Phi (Agarwal et al. 2013 recommend 1-10); 10 measured in bench/bench_optimizers.py
+# (manhattan + 50 false loop closures) kept every true loop closure and dropped the false ones.
+DCS_PHI = 10.0
+# Standard deviation of the root's prior: "fixed" without a hard constraint (which LM handles badly).
+ROOT_PRIOR_SIGMA = 1e-6  # m and rad
+# Our (x, y, z, roll, pitch, yaw) index of each gtsam Pose3 tangent coordinate (rx, ry, rz, tx, ty, tz).
+POSE3_FROM_OURS = [3, 4, 5, 0, 1, 2]
+# Our index of each gtsam Pose2 tangent coordinate (x, y, theta).
+POSE2_FROM_OURS = [0, 1, 5]
+# g2o EDGE_SE3:QUAT errors are (x, y, z, qx, qy, qz): the quaternion's vector part is about half
+# the rotation angle, so information on qxyz = 4 x information on the angles (cross terms x 2).
+G2O_QUAT_PER_ANGLE = 0.5
+# Relative error decrease at which the optimisers stop.
+RELATIVE_ERROR_TOL = 1e-5
+ABSOLUTE_ERROR_TOL = 1e-5
+
+
+@dataclass
+class OptimizationResult:
+    """Optimised poses and statistics.
+
+    Attributes:
+        poses: node id -> 4x4 optimised pose (the root's frame, root at its given pose).
+        chi2_initial: sum of whitened squared errors of every link at the initial guess.
+        chi2_final: the same over the links kept (not rejected), at the optimised poses
+            (plain Gaussian errors, no robust kernel).
+        iterations: optimiser iterations (summed over the robust re-optimisation).
+        rejected: loop closures dropped by the robust mode.
+        time_s: wall time of the optimisation (s).
+    """
+
+    poses: dict[int, np.ndarray]
+    chi2_initial: float
+    chi2_final: float
+    iterations: int
+    rejected: list[Link] = field(default_factory=list)
+    time_s: float = 0.0
+
+
+# -- conversions ---------------------------------------------------------------------------------
+
+def _to_gtsam(T: np.ndarray, planar: bool):
+    import gtsam
+
+    if planar:
+        x, y, yaw = transforms.to_xy_yaw(T)
+        return gtsam.Pose2(x, y, yaw)
+    return gtsam.Pose3(np.asarray(T, dtype=np.float64))
+
+
+def _from_gtsam(pose, planar: bool) -> np.ndarray:
+    if planar:
+        return transforms.from_xy_yaw(pose.x(), pose.y(), pose.theta())
+    return np.asarray(pose.matrix(), dtype=np.float64)
+
+
+def gtsam_information(information: np.ndarray, planar: bool) -> np.ndarray:
+    """Our 6x6 information (x, y, z, roll, pitch, yaw) in gtsam's tangent order (3x3 or 6x6)."""
+    order = POSE2_FROM_OURS if planar else POSE3_FROM_OURS
+    info = np.asarray(information, dtype=np.float64)[np.ix_(order, order)]
+    return 0.5 * (info + info.T)
+
+
+def _noise(information: np.ndarray, planar: bool):
+    import gtsam
+
+    info = gtsam_information(information, planar)
+    if not np.all(np.isfinite(info)) or np.any(np.linalg.eigvalsh(info) <= 0):
+        raise OptimizationError(
+            f"link information matrix is not positive definite ({info.tolist()}): check the link's "
+            "covariance (every axis needs a finite variance > 0)")
+    return gtsam.noiseModel.Gaussian.Information(info)
+
+
+def _between(link: Link, planar: bool, noise):
+    import gtsam
+
+    factor = gtsam.BetweenFactorPose2 if planar else gtsam.BetweenFactorPose3
+    return factor(link.from_id, link.to_id, _to_gtsam(link.T_from_to, planar), noise)
+
+
+# -- optimisation --------------------------------------------------------------------------------
+
+def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, params: GraphParams,
+             planar: bool) -> OptimizationResult:
+    """Optimise a pose graph with the root held at its given pose.
+
+    Args:
+        poses: node id -> 4x4 initial pose ``T_map_base`` (callers chain links with
+            ``graph.chain_poses`` for multi-session graphs).
+        links: constraints (``pose_to = pose_from @ T_from_to``); links with an end not in
+            ``poses`` are ignored.
+        root_id: node fixed at its given pose (2014 §II-B: the newest node).
+        params: optimiser, iterations, robust settings.
+        planar: optimise x, y, yaw only (Pose2); else full SE(3) (Pose3).
+
+    Returns:
+        :class:`OptimizationResult`.
+
+    Raises:
+        OptimizationError: unknown root, nodes not connected to the root, bad information
+            matrix, or a solver failure.
+    """
+    import gtsam
+
+    start = time.perf_counter()
+    if root_id not in poses:
+        raise OptimizationError(f"root node {root_id} is not among the {len(poses)} poses to optimise")
+    used = [link for link in links if link.from_id in poses and link.to_id in poses
+            and link.from_id != link.to_id]
+    components = connected_components(poses.keys(), used)
+    if len(components) > 1:
+        root_component = next(c for c in components if root_id in c)
+        raise OptimizationError(
+            f"{len(poses) - len(root_component)} of {len(poses)} nodes are not connected to the root "
+            f"{root_id}: pass one connected component (graph.connected_components)")
+    if not used:
+        return OptimizationResult({k: np.array(v, dtype=float) for k, v in poses.items()}, 0.0, 0.0, 0,
+                                  [], time.perf_counter() - start)
+
+    initial = gtsam.Values()
+    for node_id, pose in poses.items():
+        initial.insert(node_id, _to_gtsam(pose, planar))
+    noises = {id(link): _noise(link.information, planar) for link in used}
+    chi2_initial = _chi2(used, noises, initial, planar)
+
+    kept = list(used)
+    rejected: list[Link] = []
+    values, iterations = _solve(kept, noises, initial, root_id, poses[root_id], params, planar)
+    if params.robust:
+        # Robust (DCS) pass: drop loop closures the rest of the graph disagrees with, re-optimise.
+        scales = {id(link): _dcs_scale(link, noises[id(link)], values, planar)
+                  for link in kept if link.type.is_loop_closure}
+        rejected = [link for link in kept if scales.get(id(link), 1.0) < params.robust_reject_scale]
+        if rejected:
+            logger.info("robust optimisation rejected %d loop closure(s): %s", len(rejected),
+                        [(l.from_id, l.to_id) for l in rejected])
+            kept = [link for link in kept if scales.get(id(link), 1.0) >= params.robust_reject_scale]
+            if len(connected_components(poses.keys(), kept)) > 1:
+                raise OptimizationError(
+                    "robust optimisation rejected links that were the only connection of part of the graph "
+                    f"({[(l.from_id, l.to_id) for l in rejected]}): check the odometry links")
+            values, more = _solve(kept, noises, values, root_id, poses[root_id], params, planar)
+            iterations += more
+    chi2_final = _chi2(kept, noises, values, planar)
+    out = {node_id: _from_gtsam(_value(values, node_id, planar), planar) for node_id in poses}
+    return OptimizationResult(out, chi2_initial, chi2_final, iterations, rejected, time.perf_counter() - start)
+
+
+def _value(values, key: int, planar: bool):
+    return values.atPose2(key) if planar else values.atPose3(key)
+
+
+def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np.ndarray,
+           params: GraphParams, planar: bool):
+    """Build the factor graph (robust kernels on loop closures if asked) and run the optimiser."""
+    import gtsam
+
+    graph = gtsam.NonlinearFactorGraph()
+    dim = 3 if planar else 6
+    root_noise = gtsam.noiseModel.Isotropic.Sigma(dim, ROOT_PRIOR_SIGMA)
+    prior = gtsam.PriorFactorPose2 if planar else gtsam.PriorFactorPose3
+    graph.add(prior(root_id, _to_gtsam(root_pose, planar), root_noise))
+    for link in links:
+        noise = noises[id(link)]
+        if params.robust and link.type.is_loop_closure:
+            # DCS on loop closures (Agarwal et al. 2013), the paper's successors' choice.
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), noise)
+        graph.add(_between(link, planar, noise))
+    if params.optimizer == "lm":
+        opt_params = gtsam.LevenbergMarquardtParams()
+        cls = gtsam.LevenbergMarquardtOptimizer
+    elif params.optimizer == "gn":
+        opt_params = gtsam.GaussNewtonParams()
+        cls = gtsam.GaussNewtonOptimizer
+    else:
+        opt_params = gtsam.DoglegParams()
+        cls = gtsam.DoglegOptimizer
+    opt_params.setMaxIterations(params.iterations)
+    opt_params.setRelativeErrorTol(RELATIVE_ERROR_TOL)
+    opt_params.setAbsoluteErrorTol(ABSOLUTE_ERROR_TOL)
+    optimizer = cls(graph, initial, opt_params)
+    try:
+        values = optimizer.optimize()
+    except RuntimeError as exc:
+        raise OptimizationError(f"{params.optimizer} optimisation of {len(links)} links failed: {exc}") from exc
+    if not np.isfinite(graph.error(values)):
+        raise OptimizationError(f"{params.optimizer} optimisation diverged (non-finite error)")
+    return values, int(optimizer.iterations())
+
+
+def _chi2(links: list[Link], noises: dict, values, planar: bool) -> float:
+    """Sum of whitened squared errors of the links (plain Gaussian noise; 2 x gtsam's error)."""
+    import gtsam
+
+    graph = gtsam.NonlinearFactorGraph()
+    for link in links:
+        graph.add(_between(link, planar, noises[id(link)]))
+    return 2.0 * graph.error(values)
+
+
+def _dcs_scale(link: Link, noise, values, planar: bool) -> float:
+    """DCS scale ``min(1, 2 phi / (phi + chi2_i))`` of one link at ``values``."""
+    chi2_i = 2.0 * _between(link, planar, noise).error(values)
+    return min(1.0, 2.0 * DCS_PHI / (DCS_PHI + chi2_i))
+
+
+# -- g2o files -----------------------------------------------------------------------------------
+
+def _upper(matrix: np.ndarray) -> list[float]:
+    n = matrix.shape[0]
+    return [float(matrix[i, j]) for i in range(n) for j in range(i, n)]
+
+
+def _from_upper(values: list[float], n: int) -> np.ndarray:
+    m = np.zeros((n, n))
+    m[np.triu_indices(n)] = values
+    return m + np.triu(m, 1).T
+
+
+def _se3_g2o_scaling() -> np.ndarray:
+    """Diagonal map from our (x, y, z, roll, pitch, yaw) errors to g2o's (x, y, z, qx, qy, qz)."""
+    return np.diag([1.0, 1.0, 1.0] + [G2O_QUAT_PER_ANGLE] * 3)
+
+
+def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
+    """Read a g2o pose graph (VERTEX_SE2/EDGE_SE2 or VERTEX_SE3:QUAT/EDGE_SE3:QUAT).
+
+    Returns:
+        ``(poses, links, planar)``: vertex poses (4x4); links with their 6x6 information over
+        (x, y, z, roll, pitch, yaw) (planar files: z, roll, pitch get the x information's value,
+        unused by Pose2); ``planar`` True for SE2 files. A file with edges only (CSAIL.g2o) gets
+        poses chained from the first edge's from vertex. Edges are typed NEIGHBOR when they join
+        consecutive ids, LOOP_INTRA otherwise.
+
+    Raises:
+        OptimizationError: unreadable file, unknown or malformed lines.
+    """
+    path = Path(path)
+    poses: dict[int, np.ndarray] = {}
+    links: list[Link] = []
+    planar: bool | None = None
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as exc:
+        raise OptimizationError(f"cannot read g2o file {path}: {exc.strerror}") from exc
+    S = _se3_g2o_scaling()
+    for number, line in enumerate(lines, 1):
+        f = line.split()
+        if not f or f[0].startswith("#"):
+            continue
+        tag = f[0]
+        try:
+            if tag == "VERTEX_SE2":
+                poses[int(f[1])] = transforms.from_xy_yaw(float(f[2]), float(f[3]), float(f[4]))
+                planar = True
+            elif tag == "EDGE_SE2":
+                i, j = int(f[1]), int(f[2])
+                T = transforms.from_xy_yaw(float(f[3]), float(f[4]), float(f[5]))
+                info3 = _from_upper([float(v) for v in f[6:12]], 3)
+                info = np.eye(6) * info3[0, 0]
+                info[np.ix_(POSE2_FROM_OURS, POSE2_FROM_OURS)] = info3
+                links.append(Link(i, j, _g2o_type(i, j), T, info))
+                planar = True
+            elif tag == "VERTEX_SE3:QUAT":
+                v = [float(x) for x in f[2:9]]
+                poses[int(f[1])] = transforms.from_xyz_quat_xyzw(v[:3], v[3:])
+                planar = False
+            elif tag == "EDGE_SE3:QUAT":
+                i, j = int(f[1]), int(f[2])
+                v = [float(x) for x in f[3:10]]
+                T = transforms.from_xyz_quat_xyzw(v[:3], v[3:])
+                info_g2o = _from_upper([float(x) for x in f[10:31]], 6)
+                links.append(Link(i, j, _g2o_type(i, j), T, S @ info_g2o @ S))
+                planar = False
+            elif tag in ("FIX", "PARAMS_SE3OFFSET"):
+                continue
+            else:
+                raise ValueError(f"unsupported element {tag}")
+        except (ValueError, IndexError) as exc:
+            raise OptimizationError(f"{path}:{number}: cannot parse {line[:60]!r}: {exc}") from exc
+    if planar is None:
+        raise OptimizationError(f"{path} holds no vertex or edge")
+    if not poses and links:
+        # Edges only (CSAIL.g2o): initial guess by chaining the edges from the first vertex.
+        first = min(min(l.from_id, l.to_id) for l in links)
+        poses = chain_poses(first, transforms.identity(), links)
+    return poses, links, planar
+
+
+def _g2o_type(i: int, j: int) -> LinkType:
+    return LinkType.NEIGHBOR if abs(i - j) == 1 else LinkType.LOOP_INTRA
+
+
+def write_g2o(path, poses: dict[int, np.ndarray], links: list[Link], planar: bool) -> None:
+    """Write a g2o pose graph (SE2 when ``planar``, else SE3:QUAT); inverse of :func:`read_g2o`."""
+    S = _se3_g2o_scaling()
+    S_inv = np.linalg.inv(S)
+    out: list[str] = []
+    for node_id in sorted(poses):
+        T = poses[node_id]
+        if planar:
+            x, y, yaw = transforms.to_xy_yaw(T)
+            out.append(f"VERTEX_SE2 {node_id} {x:.9g} {y:.9g} {yaw:.9g}")
+        else:
+            q = transforms.quat_xyzw(T)
+            t = T[:3, 3]
+            out.append(f"VERTEX_SE3:QUAT {node_id} " + " ".join(f"{v:.9g}" for v in [*t, *q]))
+    for link in links:
+        if planar:
+            x, y, yaw = transforms.to_xy_yaw(link.T_from_to)
+            info = np.asarray(link.information)[np.ix_(POSE2_FROM_OURS, POSE2_FROM_OURS)]
+            values = [x, y, yaw, *_upper(info)]
+            out.append(f"EDGE_SE2 {link.from_id} {link.to_id} " + " ".join(f"{v:.9g}" for v in values))
+        else:
+            q = transforms.quat_xyzw(link.T_from_to)
+            info = S_inv @ np.asarray(link.information) @ S_inv
+            values = [*link.T_from_to[:3, 3], *q, *_upper(info)]
+            out.append(f"EDGE_SE3:QUAT {link.from_id} {link.to_id} " + " ".join(f"{v:.9g}" for v in values))
+    try:
+        Path(path).write_text("\n".join(out) + "\n")
+    except OSError as exc:
+        raise OptimizationError(f"cannot write g2o file {path}: {exc.strerror}") from exc
+
+
+__all__ = ["OptimizationResult", "gtsam_information", "optimize", "read_g2o", "write_g2o"]

@@ -1,0 +1,398 @@
+"""Loop closure verification (2014 §II-A): a rigid transform between two nodes.
+
+The RGB image's visual words get a 3D position from the registered depth image
+(:func:`words_3d`). When a loop closure is detected, RANSAC on the 3D-3D correspondences of words
+that occur exactly once in both signatures estimates the rigid transform (Kabsch / Umeyama
+without scale on 3 samples, every hypothesis scored against all correspondences, all hypotheses
+batched in numpy). The loop closure is accepted with at least ``I`` (``min_inliers``) inliers.
+On a robot moving on a plane the transform is limited to x, y, yaw and refined with 2D
+point-to-line ICP on the laser scans of the two nodes (:func:`icp_2d`).
+
+Frames: a transform ``T_from_to`` maps points of the *to* node's base frame into the *from*
+node's base frame (``from_points ≈ T_from_to @ to_points``); it equals
+``inv(pose_from) @ pose_to``, the ``T_from_to`` of a :class:`~rtabmap_ros2.core.graph.Link`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.params import RegistrationParams
+from rtabmap_ros2.core.sensor import CameraModel
+from rtabmap_ros2.core.signature import Signature
+from rtabmap_ros2.errors import RegistrationError
+
+logger = logging.getLogger(__name__)
+
+# RANSAC: seed used when the caller gives no generator, so loop closures are reproducible.
+DEFAULT_SEED = 0
+# RANSAC: a 3-point sample whose triangle is smaller than this (area, m^2) is degenerate.
+MIN_SAMPLE_AREA = 1e-4
+# RANSAC refit: iteratively reweighted least squares, Cauchy scale = this ratio x inlier_distance
+# (0.2 x 0.1 m = 2 cm, about the Kinect's depth noise at 2 m).
+IRLS_SCALE_RATIO = 0.2
+IRLS_ITERATIONS = 20
+IRLS_CONVERGENCE = 1e-6  # m and rad
+# Information matrix floors: variances never go below these (1 cm, ~0.6 degree standard deviation),
+# so a lucky near-zero residual cannot make one link dominate the whole graph.
+MIN_TRANSLATION_VARIANCE = 1e-4  # m^2
+MIN_ROTATION_VARIANCE = 1e-4  # rad^2
+# ICP: neighbours (the point included) fitting the local line (normal) at each target point; 3 gave
+# the smallest mean error on intel-corrected k -> k+5 pairs (bench/bench_registration.py).
+ICP_NORMAL_NEIGHBORS = 3
+# ICP: a target point whose neighbours spread farther than this has no reliable normal.
+ICP_NORMAL_MAX_RADIUS = 0.5  # m
+# ICP: stop when an update moves less than these.
+ICP_CONVERGENCE_TRANSLATION = 1e-5  # m
+ICP_CONVERGENCE_ROTATION = 1e-6  # rad
+# ICP: Cauchy scale of the point-to-line residuals (a few times the laser's noise).
+ICP_ROBUST_SCALE = 0.05  # m
+# ICP: minimum correspondences for a well-posed 3-DoF Gauss-Newton step.
+ICP_MIN_CORRESPONDENCES = 10
+
+
+@dataclass
+class Registration:
+    """A verified rigid transform between two nodes.
+
+    Attributes:
+        T_from_to: 4x4 transform, to-node base frame -> from-node base frame.
+        information: 6x6 information matrix over (x, y, z, roll, pitch, yaw), (1/m^2, 1/rad^2).
+        inliers: RANSAC inliers (visual words supporting the transform).
+        icp_refined: True when 2D ICP on the laser scans refined the visual estimate.
+        rmse: root mean square residual (m) of the inliers (of the ICP correspondences if refined).
+    """
+
+    T_from_to: np.ndarray
+    information: np.ndarray
+    inliers: int
+    icp_refined: bool
+    rmse: float
+
+
+def words_3d(keypoints: np.ndarray, depth_m: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """3D positions of visual words in the base frame.
+
+    Args:
+        keypoints: (N,2) pixel coordinates (x = column, y = row).
+        depth_m: HxW depth (m) registered to the image of the keypoints; NaN or 0 = invalid.
+        camera: pinhole model of the image; ``T_base_camera`` maps optical -> base frame.
+
+    Returns:
+        (N,3) float32 points (m) in the base frame; NaN rows where the depth at the keypoint's
+        rounded pixel is invalid or the keypoint falls outside the image.
+    """
+    kp = np.asarray(keypoints, dtype=np.float64).reshape(-1, 2)
+    depth = np.asarray(depth_m)
+    out = np.full((len(kp), 3), np.nan, dtype=np.float32)
+    if len(kp) == 0:
+        return out
+    cols = np.rint(kp[:, 0]).astype(np.int64)
+    rows = np.rint(kp[:, 1]).astype(np.int64)
+    inside = (cols >= 0) & (cols < depth.shape[1]) & (rows >= 0) & (rows < depth.shape[0])
+    z = np.full(len(kp), np.nan)
+    z[inside] = depth[rows[inside], cols[inside]]
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(z) & (z > 0)
+    if not valid.any():
+        return out
+    p_cam = camera.back_project(kp[valid], z[valid])
+    T = camera.T_base_camera
+    out[valid] = (p_cam @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+    return out
+
+
+def kabsch(from_points: np.ndarray, to_points: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares rigid transform ``T`` (4x4) with ``from_points ≈ T @ to_points``.
+
+    Args:
+        from_points: (N,3) or batched (H,N,3) points (m).
+        to_points: same shape as ``from_points``.
+        weights: optional (N,) or (H,N) non-negative weights.
+
+    Returns:
+        (4,4) or (H,4,4) transforms.
+    """
+    P = np.asarray(from_points, dtype=np.float64)
+    Q = np.asarray(to_points, dtype=np.float64)
+    single = P.ndim == 2
+    if single:
+        P, Q = P[None], Q[None]
+        weights = None if weights is None else np.asarray(weights, dtype=np.float64)[None]
+    w = np.ones(P.shape[:2]) if weights is None else weights
+    w = w / w.sum(axis=1, keepdims=True)
+    cp = np.einsum("hn,hnd->hd", w, P)
+    cq = np.einsum("hn,hnd->hd", w, Q)
+    H = np.einsum("hn,hni,hnj->hij", w, Q - cq[:, None], P - cp[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("hij,hjk->hik", Vt.transpose(0, 2, 1), U.transpose(0, 2, 1))))
+    D = np.tile(np.eye(3), (len(P), 1, 1))
+    D[:, 2, 2] = d
+    R = Vt.transpose(0, 2, 1) @ D @ U.transpose(0, 2, 1)
+    T = np.tile(np.eye(4), (len(P), 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = cp - np.einsum("hij,hj->hi", R, cq)
+    return T[0] if single else T
+
+
+def correspondences(from_sig: Signature, to_sig: Signature) -> tuple[np.ndarray, np.ndarray]:
+    """3D-3D correspondences of the words occurring exactly once in both signatures.
+
+    Returns:
+        ``(from_points, to_points)``, each (K,3) float64 (m) in its node's base frame, only
+        pairs with finite positions in both.
+    """
+    from_words = from_sig.unique_words()
+    to_words = to_sig.unique_words()
+    common = sorted(from_words.keys() & to_words.keys())
+    if not common:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    i_from = np.fromiter((from_words[w] for w in common), dtype=np.int64, count=len(common))
+    i_to = np.fromiter((to_words[w] for w in common), dtype=np.int64, count=len(common))
+    p_from = np.asarray(from_sig.points3d, dtype=np.float64)[i_from]
+    p_to = np.asarray(to_sig.points3d, dtype=np.float64)[i_to]
+    finite = np.isfinite(p_from).all(axis=1) & np.isfinite(p_to).all(axis=1)
+    return p_from[finite], p_to[finite]
+
+
+def ransac_rigid(from_points: np.ndarray, to_points: np.ndarray, inlier_distance: float, iterations: int,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC + Kabsch on 3D-3D correspondences, all hypotheses scored at once.
+
+    Args:
+        from_points, to_points: (N,3) corresponding points (m), N >= 3.
+        inlier_distance: a correspondence is an inlier when ``|from - T @ to| < inlier_distance`` (m).
+        iterations: number of 3-point hypotheses.
+        rng: random generator for the samples.
+
+    Returns:
+        ``(T_from_to 4x4, inlier mask (N,) bool)`` after refitting on the inliers.
+    """
+    n = len(from_points)
+    # Hypotheses: 3 distinct correspondences per row (smallest of N random keys per row).
+    samples = np.argpartition(rng.random((iterations, n)), 2, axis=1)[:, :3]
+    q = to_points[samples]
+    area = 0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1)
+    samples = samples[area > MIN_SAMPLE_AREA]
+    if len(samples) == 0:
+        raise RegistrationError(
+            f"RANSAC: all {iterations} samples of the {n} correspondences are degenerate (collinear or "
+            "coincident words): the scene has no 3D structure to register")
+    Ts = kabsch(from_points[samples], to_points[samples])
+    # Score every hypothesis against every correspondence.
+    moved = np.einsum("hij,nj->hni", Ts[:, :3, :3], to_points) + Ts[:, None, :3, 3]
+    inliers = np.sum((moved - from_points[None]) ** 2, axis=2) < inlier_distance ** 2
+    best = int(np.argmax(inliers.sum(axis=1)))
+    T, mask = Ts[best], inliers[best]
+    # Refit on the inliers: iteratively reweighted Kabsch (Cauchy weights). A plain least-squares
+    # refit on every point within inlier_distance is pulled by the noisiest far words (depth noise
+    # grows with range): measured on TUM fr1_xyz it left 2-11 cm errors, the weighted refit 0.5-1 cm.
+    scale = IRLS_SCALE_RATIO * inlier_distance
+    for _ in range(IRLS_ITERATIONS):
+        r = _residuals(T, from_points, to_points)
+        gate = r < inlier_distance
+        if gate.sum() < 3:
+            break
+        w = 1.0 / (1.0 + (r[gate] / scale) ** 2)
+        T_new = kabsch(from_points[gate], to_points[gate], w)
+        step = transforms.inverse(T) @ T_new
+        T = T_new
+        if np.linalg.norm(step[:3, 3]) < IRLS_CONVERGENCE and transforms.rotation_angle(step) < IRLS_CONVERGENCE:
+            break
+    mask = _residuals(T, from_points, to_points) < inlier_distance
+    return T, mask
+
+
+def _residuals(T: np.ndarray, from_points: np.ndarray, to_points: np.ndarray) -> np.ndarray:
+    """Distances (N,) between ``from_points`` and ``T @ to_points`` (m)."""
+    return np.linalg.norm(to_points @ T[:3, :3].T + T[:3, 3] - from_points, axis=1)
+
+
+def _information(rmse: float, spread: float, planar: bool) -> np.ndarray:
+    """6x6 information (x, y, z, roll, pitch, yaw) from the residual RMSE and the points' spread.
+
+    Translation variance = RMSE^2 of the residuals (conservative: residuals of neighbouring
+    words are correlated, so it is not divided by the inlier count, as in RTAB-Map). Rotation
+    variance = RMSE^2 / spread^2: a residual of ``rmse`` at a lever arm of ``spread`` metres is
+    an angle of ``rmse / spread``. Both have a floor (MIN_*_VARIANCE).
+    """
+    var_t = max(rmse ** 2, MIN_TRANSLATION_VARIANCE)
+    var_r = max(rmse ** 2 / max(spread, 1e-6) ** 2, MIN_ROTATION_VARIANCE)
+    info = np.diag([1 / var_t] * 3 + [1 / var_r] * 3)
+    if planar:
+        # z, roll and pitch are not estimated in 3 DoF: keep them at the floor's information so
+        # the matrix stays invertible (Pose2 optimisation ignores them).
+        info[2, 2] = 1 / MIN_TRANSLATION_VARIANCE
+        info[3, 3] = info[4, 4] = 1 / MIN_ROTATION_VARIANCE
+    return info
+
+
+def register(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
+             rng: np.random.Generator | None = None) -> Registration:
+    """Rigid transform between two nodes from their 3D visual words (and laser scans).
+
+    Args:
+        from_sig: the from node (e.g. the loop closure hypothesis); its ``points3d`` in its base
+            frame (m), NaN without depth.
+        to_sig: the to node (e.g. the new node).
+        params: RANSAC / ICP settings.
+        rng: random generator for RANSAC (default: seeded with DEFAULT_SEED, reproducible).
+
+    Returns:
+        :class:`Registration` with ``T_from_to`` (``from_points ≈ T_from_to @ to_points``).
+
+    Raises:
+        RegistrationError: fewer than ``params.min_inliers`` inliers, or ICP refinement rejected.
+    """
+    rng = np.random.default_rng(DEFAULT_SEED) if rng is None else rng
+    p_from, p_to = correspondences(from_sig, to_sig)
+    if len(p_from) < max(3, params.min_inliers):
+        raise RegistrationError(
+            f"nodes {from_sig.id} -> {to_sig.id}: only {len(p_from)} correspondences (words unique in "
+            f"both signatures with depth) < min_inliers={params.min_inliers}: loop closure rejected")
+    # Loop closure transform (2014 §II-A): RANSAC on the 3D visual word correspondences.
+    T, mask = ransac_rigid(p_from, p_to, params.inlier_distance, params.ransac_iterations, rng)
+    n_inliers = int(mask.sum())
+    if n_inliers < params.min_inliers:
+        raise RegistrationError(
+            f"nodes {from_sig.id} -> {to_sig.id}: {n_inliers} inliers < min_inliers={params.min_inliers} "
+            f"({len(p_from)} correspondences): loop closure rejected")
+    if params.planar:
+        # Robot on a plane (2014 §III): keep x, y and the rotation about z.
+        T = transforms.project_planar(T)
+    residuals = _residuals(T, p_from[mask], p_to[mask])
+    rmse = float(np.sqrt(np.mean(residuals ** 2)))
+    centred = p_from[mask] - p_from[mask].mean(axis=0)
+    spread = float(np.sqrt(np.mean(np.sum(centred ** 2, axis=1))))
+    info = _information(rmse, spread, params.planar)
+    result = Registration(T, info, n_inliers, False, rmse)
+    if params.icp_refine and from_sig.scan is not None and to_sig.scan is not None:
+        result = _refine_with_icp(from_sig, to_sig, result, params)
+    return result
+
+
+def _refine_with_icp(from_sig: Signature, to_sig: Signature, visual: Registration,
+                     params: RegistrationParams) -> Registration:
+    """2D ICP refinement of a visual loop closure (2014 §II-A), or RegistrationError.
+
+    A refinement is accepted only if the scans overlap enough (``icp_min_overlap``) and ICP moved
+    the visual estimate by less than ``icp_max_translation``. Otherwise the loop closure is
+    *rejected*, not kept with its visual estimate: laser and vision disagreeing means one of them
+    matched the wrong structure (repetitive texture, a moved object, a look-alike corridor), so
+    the hypothesis itself is doubtful, and a wrong link costs the graph far more than a missed one.
+    """
+    source = to_sig.scan.points_base()
+    target = from_sig.scan.points_base()
+    T_icp, overlap, rmse = icp_2d(source, target, visual.T_from_to,
+                                  max_correspondence_distance=params.icp_max_correspondence_distance,
+                                  iterations=params.icp_iterations)
+    correction = float(np.linalg.norm(T_icp[:2, 3] - visual.T_from_to[:2, 3]))
+    if overlap < params.icp_min_overlap:
+        raise RegistrationError(
+            f"nodes {from_sig.id} -> {to_sig.id}: ICP overlap {overlap:.2f} < icp_min_overlap="
+            f"{params.icp_min_overlap}: the scans do not agree with the visual estimate, loop closure rejected")
+    if correction >= params.icp_max_translation:
+        raise RegistrationError(
+            f"nodes {from_sig.id} -> {to_sig.id}: ICP moved the visual estimate by {correction:.3f} m >= "
+            f"icp_max_translation={params.icp_max_translation} m: loop closure rejected")
+    # Apply the planar correction found by ICP to the visual estimate (equal to T_icp when the
+    # visual estimate is already planar; keeps z, roll, pitch otherwise).
+    T = T_icp @ transforms.inverse(transforms.project_planar(visual.T_from_to)) @ visual.T_from_to
+    spread = _spread_2d(target)
+    info = _information(rmse, spread, planar=True)
+    logger.debug("ICP refined %d -> %d: correction %.3f m, overlap %.2f, rmse %.3f m",
+                 from_sig.id, to_sig.id, correction, overlap, rmse)
+    return Registration(T, info, visual.inliers, True, rmse)
+
+
+def _spread_2d(points: np.ndarray) -> float:
+    """RMS distance (m) of (N,2) points from their centroid."""
+    centred = points - points.mean(axis=0)
+    return float(np.sqrt(np.mean(np.sum(centred ** 2, axis=1))))
+
+
+def _line_normals(points: np.ndarray, tree: cKDTree) -> np.ndarray:
+    """Unit normals (N,2) of the local line through each point's neighbours; NaN where unreliable."""
+    k = min(ICP_NORMAL_NEIGHBORS, len(points))
+    dist, idx = tree.query(points, k=k)
+    neighbors = points[idx]
+    centred = neighbors - neighbors.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred)
+    _, vecs = np.linalg.eigh(cov)
+    normals = vecs[:, :, 0]  # eigenvector of the smallest eigenvalue
+    normals[dist[:, -1] > ICP_NORMAL_MAX_RADIUS] = np.nan
+    return normals
+
+
+def icp_2d(source_xy: np.ndarray, target_xy: np.ndarray, T_init: np.ndarray, *,
+           max_correspondence_distance: float = 0.3, iterations: int = 30) -> tuple[np.ndarray, float, float]:
+    """2D point-to-line ICP (Gauss-Newton on x, y, yaw).
+
+    Args:
+        source_xy: (N,2) points (m) of the scan to align, in its own (base) frame.
+        target_xy: (M,2) points (m) of the reference scan, in its frame.
+        T_init: initial ``T_target_source`` as a 3x3 (SE(2)) or 4x4 transform.
+        max_correspondence_distance: nearest target point farther than this (m) = no match.
+        iterations: maximum Gauss-Newton iterations.
+
+    Returns:
+        ``(T, overlap, rmse)``: ``T`` 4x4 planar ``T_target_source`` (``target ≈ T @ source``);
+        ``overlap`` the ratio of source points with a correspondence at the final estimate;
+        ``rmse`` the point-to-line RMS residual (m) of those correspondences (inf if none).
+    """
+    src = np.asarray(source_xy, dtype=np.float64).reshape(-1, 2)
+    tgt = np.asarray(target_xy, dtype=np.float64).reshape(-1, 2)
+    T_init = np.asarray(T_init, dtype=np.float64)
+    if T_init.shape == (3, 3):
+        x, y, yaw = T_init[0, 2], T_init[1, 2], np.arctan2(T_init[1, 0], T_init[0, 0])
+    else:
+        x, y, yaw = transforms.to_xy_yaw(T_init)
+    if len(src) < ICP_MIN_CORRESPONDENCES or len(tgt) < ICP_MIN_CORRESPONDENCES:
+        return transforms.from_xy_yaw(x, y, yaw), 0.0, float("inf")
+    tree = cKDTree(tgt)
+    normals = _line_normals(tgt, tree)
+    has_normal = np.isfinite(normals).all(axis=1)
+
+    def match(x: float, y: float, yaw: float):
+        c, s = np.cos(yaw), np.sin(yaw)
+        moved = src @ np.array([[c, s], [-s, c]]) + (x, y)
+        dist, idx = tree.query(moved, distance_upper_bound=max_correspondence_distance)
+        ok = np.isfinite(dist)
+        idx_ok = idx[ok]
+        ok_normal = has_normal[idx_ok]
+        return moved[ok][ok_normal], idx_ok[ok_normal], int(ok.sum())
+
+    for _ in range(iterations):
+        moved, idx, _ = match(x, y, yaw)
+        if len(idx) < ICP_MIN_CORRESPONDENCES:
+            break
+        n = normals[idx]
+        r = np.sum(n * (moved - tgt[idx]), axis=1)
+        # d(moved)/d(yaw) = perpendicular of (moved - t).
+        rel = moved - (x, y)
+        J = np.column_stack([n[:, 0], n[:, 1], n[:, 0] * -rel[:, 1] + n[:, 1] * rel[:, 0]])
+        # Robust weights (Cauchy) so wrong correspondences inside the gate do not bias the fit.
+        w = 1.0 / (1.0 + (r / ICP_ROBUST_SCALE) ** 2)
+        try:
+            delta = np.linalg.solve(J.T @ (w[:, None] * J), -J.T @ (w * r))
+        except np.linalg.LinAlgError:
+            break
+        x, y, yaw = x + delta[0], y + delta[1], yaw + delta[2]
+        if np.hypot(delta[0], delta[1]) < ICP_CONVERGENCE_TRANSLATION and abs(delta[2]) < ICP_CONVERGENCE_ROTATION:
+            break
+    moved, idx, n_matched = match(x, y, yaw)
+    overlap = n_matched / len(src)
+    if len(idx):
+        r = np.sum(normals[idx] * (moved - tgt[idx]), axis=1)
+        rmse = float(np.sqrt(np.mean(r ** 2)))
+    else:
+        rmse = float("inf")
+    return transforms.from_xy_yaw(x, y, yaw), overlap, rmse
+
+
+__all__ = ["Registration", "correspondences", "icp_2d", "kabsch", "ransac_rigid", "register", "words_3d"]
