@@ -99,6 +99,7 @@ IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
+TF_MSG_DEFINITION = "geometry_msgs/TransformStamped[] transforms"
 
 
 @dataclass(frozen=True)
@@ -134,8 +135,12 @@ class FrameIds:
 @lru_cache(maxsize=None)
 def typestore(ros1: bool = False):
     """The Jazzy (ROS 2) or Noetic (ROS 1) typestore of rosbags."""
-    from rosbags.typesys import Stores, get_typestore
-    return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    if TF_TYPE not in ts.types:
+        # Noetic's store lacks tf2_msgs; its definition is one line.
+        ts.register(get_types_from_msg(TF_MSG_DEFINITION, TF_TYPE))
+    return ts
 
 
 def _make(ts, msgtype: str, **values):
@@ -707,7 +712,7 @@ def _write_frames(sink: _MessageSink, frames: Iterable[SensorFrame], topics: Top
         if frame.scan is not None and frame_ids.laser not in tf_written:
             static.append(transform_to_msg(frame.scan.T_base_laser, frame_ids.base, frame_ids.laser, t, ts))
             tf_written.add(frame_ids.laser)
-        if static and TF_TYPE in ts.types:
+        if static:
             sink.write(TF_STATIC_TOPIC, _make(ts, TF_TYPE, transforms=static), t)
         if frame.T_odom_base is not None:
             sink.write(topics.odom, odometry_to_msg(frame.T_odom_base, frame.odom_covariance, t, frame_ids.odom,
