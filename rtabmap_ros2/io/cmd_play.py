@@ -1,0 +1,62 @@
+"""``rtabmap-ros2 play BAG``: publish a ROS 2 bag's messages on their topics with the recorded timing.
+
+The ``ros2 bag play`` equivalent that needs no ROS install (rclpy from PyPI): see
+:mod:`rtabmap_ros2.ros.play`. Ctrl-C stops the playback.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "play", help="publish a bag's messages with their recorded timing (ros2 bag play without ROS)",
+        description=__doc__.splitlines()[0])
+    parser.add_argument("bag", help="ROS 2 bag folder (sqlite3 or mcap)")
+    parser.add_argument("--rate", type=float, default=1.0, help="speed factor (default 1: real time)")
+    parser.add_argument("--loop", action="store_true", help="play again from the start until Ctrl-C")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", default=None,
+                        help="only these topics (default: all whose message type is importable)")
+    parser.add_argument("--clock", action="store_true",
+                        help="publish the bag time on /clock (for nodes with use_sim_time:=true)")
+    parser.add_argument("--start-offset", type=float, default=0.0, metavar="S",
+                        help="skip the bag's first S seconds")
+    parser.add_argument("--delay", type=float, default=0.5, metavar="S",
+                        help="wait S seconds after creating the publishers so subscribers discover them "
+                             "(default 0.5)")
+    parser.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[], dest="ros_args",
+                        help="ROS arguments for the player node (remapping, namespace...)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+    import signal
+    import threading
+
+    import rclpy
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+
+    from rtabmap_ros2.ros.play import play_bag
+
+    log = logging.getLogger("rtabmap_ros2.play")
+    stop = threading.Event()
+    rclpy.init(args=["play", "--ros-args", *args.ros_args] if args.ros_args else None,
+               signal_handler_options=SignalHandlerOptions.NO)
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    node = Node("rtabmap_play")
+    try:
+        stats = play_bag(args.bag, node, rate=args.rate, loop=args.loop, topics=args.topics, clock=args.clock,
+                         start_offset_s=args.start_offset, delay_s=args.delay, stop=stop)
+        for topic, count in sorted(stats.published.items()):
+            log.info("%s: %d messages", topic, count)
+        if args.clock:
+            log.info("/clock: %d messages", stats.clock_messages)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0

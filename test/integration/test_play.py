@@ -1,0 +1,170 @@
+"""``play``: a bag written with rosbags is published with rclpy and received in the same process."""
+
+from __future__ import annotations
+
+import os
+import random
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.qos import qos_profile_sensor_data  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from sensor_msgs.msg import Image  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+
+from rtabmap_ros2.errors import BagError  # noqa: E402
+from rtabmap_ros2.ros.conversions import stamp_to_ns  # noqa: E402
+from rtabmap_ros2.ros.play import play_bag  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+DOMAIN_ID = random.randint(100, 200)
+NS = 1_000_000_000
+T0 = 1_700_000_000 * NS
+PERIOD_NS = NS // 10  # 10 Hz
+N_IMAGES = 8
+
+
+def _ros_env() -> dict[str, str]:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    return env
+
+
+@pytest.fixture(scope="module")
+def context():
+    os.environ.update(_ros_env())
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    """A sqlite3 bag: 8 images (10 Hz), 8 strings interleaved, 1 TFMessage (not importable here)."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    ImageT, StringT = ts.types["sensor_msgs/msg/Image"], ts.types["std_msgs/msg/String"]
+    HeaderT, TimeT = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    TFT = ts.types["tf2_msgs/msg/TFMessage"]
+    path = tmp_path_factory.mktemp("bags") / "small"
+    with Writer(path, version=9) as writer:
+        c_img = writer.add_connection("/rgb/image", ImageT.__msgtype__, typestore=ts)
+        c_str = writer.add_connection("/chatter", StringT.__msgtype__, typestore=ts)
+        c_tf = writer.add_connection("/tf", TFT.__msgtype__, typestore=ts)
+        writer.write(c_tf, T0, ts.serialize_cdr(TFT(transforms=[]), TFT.__msgtype__))
+        for i in range(N_IMAGES):
+            t = T0 + i * PERIOD_NS
+            data = np.full(4 * 3 * 3, i, dtype=np.uint8)
+            img = ImageT(header=HeaderT(stamp=TimeT(sec=t // NS, nanosec=t % NS), frame_id="cam"),
+                         height=3, width=4, encoding="rgb8", is_bigendian=0, step=12, data=data)
+            writer.write(c_img, t, ts.serialize_cdr(img, ImageT.__msgtype__))
+            writer.write(c_str, t + PERIOD_NS // 2, ts.serialize_cdr(StringT(data=f"s{i}"), StringT.__msgtype__))
+    return path
+
+
+class Receiver(Node):
+    def __init__(self, context, qos=qos_profile_sensor_data):
+        super().__init__("play_receiver", context=context)
+        self.images: list[tuple[float, Image]] = []
+        self.strings: list[str] = []
+        self.clock: list[int] = []
+        self.create_subscription(Image, "/rgb/image", lambda m: self.images.append((time.monotonic(), m)), qos)
+        self.create_subscription(String, "/chatter", lambda m: self.strings.append(m.data), 10)
+        self.create_subscription(Clock, "/clock", lambda m: self.clock.append(stamp_to_ns(m.clock)), 10)
+
+
+@pytest.fixture
+def receiver(context):
+    node = Receiver(context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    yield node
+    executor.shutdown()
+    node.destroy_node()
+    thread.join(timeout=5)
+
+
+def _wait_for(condition, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not condition():
+        time.sleep(0.02)
+    return condition()
+
+
+def test_play_publishes_every_message_in_order_with_timing(context, bag, receiver):
+    player = Node("player", context=context)
+    try:
+        t_start = time.monotonic()
+        stats = play_bag(bag, player, rate=2.0, clock=True, delay_s=1.0)
+        t_end = time.monotonic()
+    finally:
+        player.destroy_node()
+    assert stats.published == {"/rgb/image": N_IMAGES, "/chatter": N_IMAGES}
+    assert "/tf" in stats.skipped_topics  # tf2_msgs has no PyPI wheel here
+    assert _wait_for(lambda: len(receiver.images) == N_IMAGES and len(receiver.strings) == N_IMAGES)
+    assert receiver.strings == [f"s{i}" for i in range(N_IMAGES)]
+    stamps = [stamp_to_ns(m.header.stamp) for _, m in receiver.images]
+    assert stamps == [T0 + i * PERIOD_NS for i in range(N_IMAGES)]
+    # Exact bytes: pixel values survive the raw publication.
+    assert [bytes(m.data)[0] for _, m in receiver.images] == list(range(N_IMAGES))
+    # Recorded timing at rate 2: the pass cannot be shorter than (last - first) / 2.
+    bag_span_s = ((N_IMAGES - 1) * PERIOD_NS + PERIOD_NS // 2) / NS
+    assert t_end - t_start - 1.0 >= bag_span_s / 2 * 0.95
+    # /clock carries bag time, non-decreasing within the pass.
+    assert receiver.clock and receiver.clock == sorted(receiver.clock)
+    assert T0 <= receiver.clock[0] and receiver.clock[-1] <= T0 + bag_span_s * NS
+
+
+def test_play_topic_filter_start_offset_and_loop(context, bag, receiver):
+    player = Node("player2", context=context)
+    stop = threading.Event()
+    try:
+        threading.Timer(0.5 + 2.0, stop.set).start()
+        stats = play_bag(bag, player, rate=10.0, loop=True, topics=["/rgb/image"], start_offset_s=0.35,
+                         delay_s=0.5, stop=stop)
+    finally:
+        player.destroy_node()
+    assert set(stats.published) == {"/rgb/image"} and stats.loops >= 1
+    assert _wait_for(lambda: len(receiver.images) >= stats.published["/rgb/image"] * 0.9)
+    first = stamp_to_ns(receiver.images[0][1].header.stamp)
+    assert first == T0 + 4 * PERIOD_NS  # messages before 0.35 s skipped
+    assert receiver.strings == []
+
+
+def test_play_refuses_bad_input(context, bag, tmp_path):
+    player = Node("player3", context=context)
+    try:
+        with pytest.raises(BagError, match="does not exist"):
+            play_bag(tmp_path / "missing", player)
+        with pytest.raises(BagError, match="/nope"):
+            play_bag(bag, player, topics=["/nope"])
+        with pytest.raises(BagError, match="rate"):
+            play_bag(bag, player, rate=0.0)
+    finally:
+        player.destroy_node()
+
+
+def test_play_command_line(context, bag, receiver):
+    proc = subprocess.run([sys.executable, "-m", "rtabmap_ros2.io.cli", "play", str(bag), "--rate", "4",
+                           "--delay", "1.5"], env=_ros_env(), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert _wait_for(lambda: len(receiver.strings) == N_IMAGES), (receiver.strings, proc.stderr)
+    assert "/chatter: 8 messages" in proc.stderr
+    bad = subprocess.run([sys.executable, "-m", "rtabmap_ros2.io.cli", "play", str(bag.parent / "missing")],
+                         env=_ros_env(), capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "error:" in bad.stderr and "does not exist" in bad.stderr
