@@ -1,0 +1,260 @@
+"""Occupancy grid from laser scans, and an RGB-D point cloud, at the optimised poses.
+
+Grid conventions are nav_msgs/OccupancyGrid's: ``data[row, col]`` with row = y index and col = x
+index counted from ``origin_xy`` (the map position of cell (0, 0)'s corner), values -1 unknown,
+0 free, 100 occupied.
+
+Method: each beam's end cell gets a hit; the cells the beam crosses before it get a miss (ray
+casting by sampling each beam every half cell, all beams at once in numpy). A cell is occupied
+when its hits dominate (hits > misses), free when it was crossed more often than hit, unknown
+when never observed. Beams without a return (NaN, inf or >= range_max) clear free space up to
+range_max: the laser saw nothing there, which is evidence of free space; this is what lets
+open areas appear free. RTAB-Map does the same with ``Grid/RayTracing`` and its
+``Grid/RangeMax``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from rtabmap_ros2.core.params import GridParams
+from rtabmap_ros2.core.sensor import CameraModel, LaserScan
+
+logger = logging.getLogger(__name__)
+
+UNKNOWN = -1
+FREE = 0
+OCCUPIED = 100
+# Ray casting: samples per cell along each beam (2 = every half cell).
+SAMPLES_PER_CELL = 2
+# Empty margin (cells) around the observed area.
+GRID_MARGIN_CELLS = 2
+# to_image() grey levels, as map_server writes them.
+IMAGE_UNKNOWN, IMAGE_FREE, IMAGE_OCCUPIED = 205, 254, 0
+
+
+@dataclass
+class OccupancyGrid:
+    """A 2D occupancy grid.
+
+    Attributes:
+        data: (H,W) int8, -1 unknown / 0 free / 100 occupied; ``data[row = y index, col = x index]``.
+        resolution: cell size (m).
+        origin_xy: map position (m) of the corner of cell (0, 0).
+    """
+
+    data: np.ndarray
+    resolution: float
+    origin_xy: tuple[float, float]
+
+    @property
+    def height(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.data.shape[1])
+
+    def cell_of(self, xy: np.ndarray) -> np.ndarray:
+        """(N,2) int (col, row) indices of (N,2) map points (m); may fall outside the grid."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        return np.floor((xy - np.asarray(self.origin_xy)) / self.resolution).astype(np.int64)
+
+    def value_at(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) cell values at (N,2) map points (m); -1 outside the grid."""
+        cells = self.cell_of(xy)
+        inside = (cells[:, 0] >= 0) & (cells[:, 0] < self.width) & (cells[:, 1] >= 0) & (cells[:, 1] < self.height)
+        out = np.full(len(cells), UNKNOWN, dtype=np.int8)
+        out[inside] = self.data[cells[inside, 1], cells[inside, 0]]
+        return out
+
+    def to_image(self) -> np.ndarray:
+        """(H,W) uint8 image as map_server saves it: unknown 205, free 254, occupied 0, y up."""
+        img = np.full(self.data.shape, IMAGE_UNKNOWN, dtype=np.uint8)
+        img[self.data == FREE] = IMAGE_FREE
+        img[self.data == OCCUPIED] = IMAGE_OCCUPIED
+        return img[::-1]  # image row 0 = top = largest y
+
+
+def build_grid(poses: dict[int, np.ndarray], scans: dict[int, LaserScan], params: GridParams) -> OccupancyGrid:
+    """Occupancy grid of the scans of the nodes in ``poses`` (nodes without a scan are skipped).
+
+    Args:
+        poses: node id -> 4x4 ``T_map_base`` (the optimised poses).
+        scans: node id -> laser scan (``T_base_laser`` inside).
+        params: resolution (m) and range_max (m, 0 = each scan's own).
+
+    Returns:
+        :class:`OccupancyGrid` covering every observed cell (with a small margin); an empty
+        1x1 unknown grid when no node has a scan.
+    """
+    res = params.resolution
+    origins, ends, hits = [], [], []
+    for node_id, T_map_base in poses.items():
+        scan = scans.get(node_id)
+        if scan is None:
+            continue
+        o, e, h = _beams_map(T_map_base, scan, params.range_max)
+        origins.append(o)
+        ends.append(e)
+        hits.append(h)
+    if not origins:
+        return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), res, (0.0, 0.0))
+    origin_pts = np.concatenate(origins)
+    end_pts = np.concatenate(ends)
+    is_hit = np.concatenate(hits)
+    lo = np.minimum(origin_pts.min(axis=0), end_pts.min(axis=0)) - GRID_MARGIN_CELLS * res
+    hi = np.maximum(origin_pts.max(axis=0), end_pts.max(axis=0)) + GRID_MARGIN_CELLS * res
+    origin_xy = np.floor(lo / res) * res
+    width, height = (np.ceil((hi - origin_xy) / res).astype(int) + 1).tolist()
+    hit_count = np.zeros(height * width, np.int32)
+    miss_count = np.zeros(height * width, np.int32)
+
+    def flat(points: np.ndarray) -> np.ndarray:
+        cells = np.floor((points - origin_xy) / res).astype(np.int64)
+        return cells[:, 1] * width + cells[:, 0]
+
+    end_cells = flat(end_pts)
+    # Hits: the end cell of every beam with a return.
+    np.add.at(hit_count, end_cells[is_hit], 1)
+    # Misses: cells crossed by each beam before its end (ray casting, SAMPLES_PER_CELL per cell).
+    vec = end_pts - origin_pts
+    length = np.linalg.norm(vec, axis=1)
+    n_samples = np.ceil(length / res * SAMPLES_PER_CELL).astype(np.int64)
+    total = int(n_samples.sum())
+    if total:
+        beam = np.repeat(np.arange(len(vec)), n_samples)
+        start = np.cumsum(n_samples) - n_samples
+        step = np.arange(total) - np.repeat(start, n_samples)
+        frac = step / np.repeat(np.maximum(n_samples, 1), n_samples)
+        samples = origin_pts[beam] + vec[beam] * frac[:, None]
+        cells = flat(samples)
+        # One miss per (beam, cell) and never on the beam's own end cell.
+        keep = cells != end_cells[beam]
+        pairs = np.unique(np.stack([beam[keep], cells[keep]], axis=1), axis=0)
+        np.add.at(miss_count, pairs[:, 1], 1)
+    data = np.full(height * width, UNKNOWN, np.int8)
+    observed = (hit_count + miss_count) > 0
+    data[observed] = FREE
+    data[hit_count > miss_count] = OCCUPIED
+    return OccupancyGrid(data.reshape(height, width), res, (float(origin_xy[0]), float(origin_xy[1])))
+
+
+def _beams_map(T_map_base: np.ndarray, scan: LaserScan, range_max: float):
+    """Beam origins (N,2), ends (N,2) in the map frame and whether each ended on a return."""
+    r = np.asarray(scan.ranges, dtype=np.float64)
+    limit = scan.range_max if range_max <= 0 else min(range_max, scan.range_max)
+    with np.errstate(invalid="ignore"):
+        returned = np.isfinite(r) & (r >= scan.range_min) & (r < limit)
+        no_return = ~np.isfinite(r) | (r >= limit)
+    use = returned | no_return
+    ranges = np.where(returned, r, limit)[use]
+    angles = scan.angles[use]
+    pts_laser = np.stack([ranges * np.cos(angles), ranges * np.sin(angles)], axis=1)
+    T = T_map_base @ scan.T_base_laser
+    ends = pts_laser @ T[:2, :2].T + T[:2, 3]
+    origins = np.broadcast_to(T[:2, 3], ends.shape)
+    return origins, ends, returned[use]
+
+
+def voxel_filter(points: np.ndarray, colors: np.ndarray | None, voxel: float):
+    """One point per occupied voxel (the centroid, mean colour).
+
+    Args:
+        points: (N,3) float points (m).
+        colors: (N,3) uint8 RGB, or None.
+        voxel: voxel edge (m), > 0.
+
+    Returns:
+        ``(points (M,3) float32, colors (M,3) uint8 or None)``.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return pts.astype(np.float32), None if colors is None else np.zeros((0, 3), np.uint8)
+    keys = np.floor(pts / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inverse, pts)
+    out_pts = (sums / counts[:, None]).astype(np.float32)
+    if colors is None:
+        return out_pts, None
+    csum = np.zeros((len(counts), 3))
+    np.add.at(csum, inverse, np.asarray(colors, dtype=np.float64).reshape(-1, 3))
+    return out_pts, np.rint(csum / counts[:, None]).astype(np.uint8)
+
+
+def assemble_cloud(poses: dict[int, np.ndarray], depths: dict[int, np.ndarray], rgbs: dict[int, np.ndarray],
+                   cameras: dict[int, CameraModel], decimation: int, voxel: float):
+    """Coloured point cloud of the depth images at the nodes' poses (map frame).
+
+    Args:
+        poses: node id -> 4x4 ``T_map_base``.
+        depths: node id -> HxW float32 depth (m), NaN or 0 invalid.
+        rgbs: node id -> HxWx3 uint8 RGB registered to the depth (missing: grey points).
+        cameras: node id -> camera model of the depth image.
+        decimation: use every n-th pixel in each direction.
+        voxel: voxel size (m) of the final filter (0 = none).
+
+    Returns:
+        ``(points (N,3) float32 m, colors (N,3) uint8)``.
+    """
+    all_pts, all_cols = [], []
+    for node_id, T_map_base in poses.items():
+        depth = depths.get(node_id)
+        camera = cameras.get(node_id)
+        if depth is None or camera is None:
+            continue
+        d = np.asarray(depth)[::decimation, ::decimation]
+        rows, cols = np.mgrid[0:depth.shape[0]:decimation, 0:depth.shape[1]:decimation]
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(d) & (d > 0)
+        uv = np.stack([cols[valid], rows[valid]], axis=1).astype(np.float64)
+        if depth.shape != (camera.height, camera.width):
+            camera = camera.scaled(depth.shape[1], depth.shape[0])
+        p_cam = camera.back_project(uv, d[valid])
+        T = T_map_base @ camera.T_base_camera
+        all_pts.append(p_cam @ T[:3, :3].T + T[:3, 3])
+        rgb = rgbs.get(node_id)
+        if rgb is not None and rgb.shape[:2] == depth.shape:
+            all_cols.append(rgb[::decimation, ::decimation][valid])
+        else:
+            all_cols.append(np.full((len(uv), 3), 128, np.uint8))
+    if not all_pts:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    pts = np.concatenate(all_pts)
+    cols = np.concatenate(all_cols).astype(np.uint8)
+    if voxel > 0:
+        return voxel_filter(pts, cols, voxel)
+    return pts.astype(np.float32), cols
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY with ``x y z`` float and ``red green blue`` uchar per vertex.
+
+    Args:
+        path: output file.
+        points: (N,3) points (m).
+        colors: (N,3) uint8 RGB, or None (written grey).
+    """
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    cols = (np.full((len(pts), 3), 128, np.uint8) if colors is None
+            else np.asarray(colors, dtype=np.uint8).reshape(-1, 3))
+    vertex = np.empty(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                       ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vertex["x"], vertex["y"], vertex["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    vertex["red"], vertex["green"], vertex["blue"] = cols[:, 0], cols[:, 1], cols[:, 2]
+    header = ("ply\nformat binary_little_endian 1.0\ncomment rtabmap_ros2 assembled cloud\n"
+              f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(vertex.tobytes())
+
+
+__all__ = ["FREE", "OCCUPIED", "UNKNOWN", "OccupancyGrid", "assemble_cloud", "build_grid", "voxel_filter",
+           "write_ply"]

@@ -1,0 +1,107 @@
+"""Occupancy grid (ray casting, hit/miss counting), point cloud assembly, voxel filter, PLY."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.grid import (FREE, OCCUPIED, UNKNOWN, assemble_cloud, build_grid, voxel_filter,
+                                    write_ply)
+from rtabmap_ros2.core.params import GridParams
+from rtabmap_ros2.core.sensor import CameraModel, LaserScan
+
+HALF = 2.0  # half side of the square room (m)
+RES = 0.05
+
+
+def room_scan(x: float, y: float, n: int = 720) -> LaserScan:
+    """Scan of the square room [-HALF, HALF]^2 taken from (x, y) with yaw 0."""
+    angles = -np.pi + 2 * np.pi * np.arange(n) / n
+    c, s = np.cos(angles), np.sin(angles)
+    with np.errstate(divide="ignore"):
+        tx = np.where(c > 0, (HALF - x) / c, np.where(c < 0, (-HALF - x) / c, np.inf))
+        ty = np.where(s > 0, (HALF - y) / s, np.where(s < 0, (-HALF - y) / s, np.inf))
+    return LaserScan(np.minimum(tx, ty), -np.pi, 2 * np.pi / n, 0.1, 10.0)
+
+
+def test_square_room_walls_free_inside_unknown_outside():
+    grid = build_grid({1: transforms.identity()}, {1: room_scan(0.0, 0.0)}, GridParams(resolution=RES))
+    # Walls: occupied within one cell of the wall line.
+    t = np.linspace(-HALF + 0.2, HALF - 0.2, 40)
+    for wall in ([np.full_like(t, HALF), t], [np.full_like(t, -HALF), t], [t, np.full_like(t, HALF)],
+                 [t, np.full_like(t, -HALF)]):
+        pts = np.stack(wall, axis=1)
+        near = np.stack([grid.value_at(pts + d) for d in
+                         ([0, 0], [RES, 0], [-RES, 0], [0, RES], [0, -RES])], axis=0)
+        assert np.all((near == OCCUPIED).any(axis=0)), "a wall point has no occupied cell within one cell"
+    # Inside: free (away from the walls).
+    g = np.linspace(-HALF + 0.3, HALF - 0.3, 15)
+    inside = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    assert np.all(grid.value_at(inside) == FREE)
+    # Outside the room: never observed.
+    outside = np.array([[HALF + 0.5, 0.0], [0.0, -HALF - 0.5], [HALF + 1.0, HALF + 1.0]])
+    assert np.all(grid.value_at(outside) == UNKNOWN)
+    occupied = np.argwhere(grid.data == OCCUPIED)
+    # nav_msgs layout: row = y index. Top wall (y = +HALF) cells are at the highest rows.
+    assert occupied[:, 0].max() * RES + grid.origin_xy[1] > HALF - 2 * RES
+
+
+def test_two_poses_combine():
+    # Two 170-degree scans (front only) from opposite headings cover the two halves of the room.
+    full = room_scan(0.0, 0.0)
+    front = np.abs(full.angles) < np.radians(85)
+    half = LaserScan(np.asarray(full.ranges)[front], float(full.angles[front][0]), full.angle_increment, 0.1, 10.0)
+    params = GridParams(resolution=RES, range_max=5.0)
+    one = build_grid({1: transforms.identity()}, {1: half}, params)
+    two = build_grid({1: transforms.identity(), 2: transforms.from_xy_yaw(0, 0, np.pi)}, {1: half, 2: half}, params)
+    left, right = np.array([[-HALF, 0.5]]), np.array([[HALF, 0.5]])
+    near = lambda g, p: (np.stack([g.value_at(p + [d, 0]) for d in (-RES, 0, RES)]) == OCCUPIED).any()
+    assert near(one, right) and not near(one, left)
+    assert near(two, right) and near(two, left)
+
+
+def test_no_return_beams_clear_to_range_max():
+    ranges = np.full(90, np.inf)
+    scan = LaserScan(ranges, -np.pi / 4, np.pi / 2 / 90, 0.1, 4.0)
+    grid = build_grid({1: transforms.identity()}, {1: scan}, GridParams(resolution=RES, range_max=2.0))
+    assert grid.value_at(np.array([[1.5, 0.0]]))[0] == FREE
+    assert grid.value_at(np.array([[2.5, 0.0]]))[0] == UNKNOWN
+    assert not (grid.data == OCCUPIED).any()
+
+
+def test_to_image_levels():
+    grid = build_grid({1: transforms.identity()}, {1: room_scan(0.0, 0.0)}, GridParams(resolution=RES))
+    img = grid.to_image()
+    assert img.dtype == np.uint8 and set(np.unique(img)) <= {0, 205, 254}
+    assert (img == 0).sum() == (grid.data == OCCUPIED).sum()
+
+
+def test_voxel_filter_removes_duplicates(rng):
+    pts = rng.uniform(0, 1, (100, 3))
+    dup = np.concatenate([pts, pts + 1e-4, pts])
+    cols = np.tile(np.array([[10, 20, 30]], np.uint8), (len(dup), 1))
+    out, out_cols = voxel_filter(dup, cols, 0.01)
+    assert len(out) <= 110 and len(out) >= 90
+    assert np.all(out_cols == [10, 20, 30])
+
+
+def test_assemble_cloud_and_ply(tmp_path):
+    cam = CameraModel(100.0, 100.0, 31.5, 23.5, 64, 48)
+    depth = np.full((48, 64), 2.0, np.float32)
+    depth[:10] = np.nan
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[..., 0] = 200
+    pts, cols = assemble_cloud({1: transforms.from_xy_yaw(1.0, 0, 0)}, {1: depth}, {1: rgb}, {1: cam},
+                               decimation=2, voxel=0.0)
+    assert len(pts) == 32 * 19 and np.allclose(pts[:, 2], 2.0) and np.all(cols[:, 0] == 200)
+    assert np.isclose(pts[:, 0].mean(), 1.0, atol=0.02)
+    path = tmp_path / "cloud.ply"
+    write_ply(path, pts, cols)
+    raw = path.read_bytes()
+    header, body = raw.split(b"end_header\n", 1)
+    lines = header.decode().splitlines()
+    assert lines[0] == "ply" and "format binary_little_endian 1.0" in lines
+    n = int(next(l for l in lines if l.startswith("element vertex")).split()[-1])
+    assert n == len(pts) and len(body) == n * 15
+    rec = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    assert np.allclose(rec["z"], 2.0) and np.all(rec["r"] == 200)
