@@ -49,7 +49,7 @@ def run_graph(name: str, repeats: int, iterations: int) -> list[dict]:
                 result = optimize(poses, links, root, params, planar)
                 times.append(result.time_s)
             except OptimizationError as exc:
-                error = str(exc).splitlines()[0] + " " + " ".join(str(exc).split()[3:12])
+                error = str(exc).split(";")[0]
                 break
         row = {"graph": name, "nodes": len(poses), "links": len(links), "planar": planar, "optimizer": opt}
         if result is None or error:

@@ -221,7 +221,10 @@ def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np
     try:
         values = optimizer.optimize()
     except RuntimeError as exc:
-        raise OptimizationError(f"{params.optimizer} optimisation of {len(links)} links failed: {exc}") from exc
+        detail = " ".join(str(exc).split()).split(" Thrown when")[0].rstrip(".")
+        raise OptimizationError(
+            f"{params.optimizer} optimisation of {len(links)} links failed: {detail}; an undamped solver (gn, "
+            "dogleg) can fail from a poor initial guess: use lm, or check that every node is constrained") from exc
     if not np.isfinite(graph.error(values)):
         raise OptimizationError(f"{params.optimizer} optimisation diverged (non-finite error)")
     return values, int(optimizer.iterations())
