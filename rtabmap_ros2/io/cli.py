@@ -17,6 +17,7 @@ from rtabmap_ros2.errors import RtabmapError
 
 # Subcommand modules, in the order ``--help`` lists them.
 SUBCOMMANDS = [
+    "carmen2bag",
     "optimize",
     "play",
 ]
