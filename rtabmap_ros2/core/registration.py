@@ -184,9 +184,9 @@ def ransac_rigid(from_points: np.ndarray, to_points: np.ndarray, inlier_distance
             f"RANSAC: all {iterations} samples of the {n} correspondences are degenerate (collinear or "
             "coincident words): the scene has no 3D structure to register")
     Ts = kabsch(from_points[samples], to_points[samples])
-    # Score every hypothesis against every correspondence.
-    moved = np.einsum("hij,nj->hni", Ts[:, :3, :3], to_points) + Ts[:, None, :3, 3]
-    inliers = np.sum((moved - from_points[None]) ** 2, axis=2) < inlier_distance ** 2
+    # Score every hypothesis against every correspondence: (H,3,N), batched matmul (BLAS).
+    moved = Ts[:, :3, :3] @ to_points.T + Ts[:, :3, 3:]
+    inliers = np.sum((moved - from_points.T[None]) ** 2, axis=1) < inlier_distance ** 2
     best = int(np.argmax(inliers.sum(axis=1)))
     T, mask = Ts[best], inliers[best]
     # Refit on the inliers: iteratively reweighted Kabsch (Cauchy weights). A plain least-squares
