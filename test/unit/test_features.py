@@ -1,0 +1,123 @@
+"""Feature extraction (2013 §III-A, Alg. 2 lines 2-3)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from rtabmap_ros2.core.features import Features, FeatureExtractor, roi_bounds
+from rtabmap_ros2.core.params import FeatureParams
+from rtabmap_ros2.errors import SensorDataError
+
+DETECTORS = ("gftt_orb", "orb", "sift")
+
+
+@pytest.fixture(scope="module")
+def textured() -> np.ndarray:
+    """A 480x640 RGB image with many corners: smoothed random blocks (deterministic)."""
+    rng = np.random.default_rng(3)
+    blocks = rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)
+    image = cv2.resize(blocks, (640, 480), interpolation=cv2.INTER_NEAREST)
+    return cv2.GaussianBlur(image, (3, 3), 0)
+
+
+@pytest.fixture
+def real_image(shared_data) -> np.ndarray:
+    bgr = cv2.imread(str(shared_data / "rgbd" / "tum_fr1_xyz_pairs" / "case_1" / "img_prev.png"))
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_max_features_respected_and_strongest_first(textured, detector):
+    features = FeatureExtractor(FeatureParams(detector=detector, max_features=150)).extract(textured)
+    assert len(features) == 150
+    assert np.all(np.diff(features.responses) <= 0), "responses must be sorted, strongest first"
+    assert features.keypoints.dtype == np.float32 and features.keypoints.shape == (150, 2)
+    assert features.responses.dtype == np.float32
+    if detector == "sift":
+        assert features.descriptors.dtype == np.float32 and features.descriptors.shape == (150, 128)
+    else:
+        assert features.descriptors.dtype == np.uint8 and features.descriptors.shape == (150, 32)
+
+
+@pytest.mark.parametrize("detector", ("gftt_orb", "sift"))
+def test_strongest_are_kept(textured, detector):
+    """The 100 kept are the 100 strongest of the uncapped extraction.
+
+    (ORB is left out on purpose: it keeps the strongest per pyramid level, see features.py.)
+    """
+    all_features = FeatureExtractor(FeatureParams(detector=detector, max_features=0)).extract(textured)
+    capped = FeatureExtractor(FeatureParams(detector=detector, max_features=100)).extract(textured)
+    assert len(all_features) > 100
+    assert capped.responses.min() >= np.sort(all_features.responses)[-100] - 1e-6
+    if detector == "gftt_orb":
+        # The same corners: GFTT ranks by response, the cap only truncates.
+        np.testing.assert_array_equal(capped.keypoints, all_features.keypoints[:100])
+
+
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_roi_respected(textured, detector):
+    roi = (0.1, 0.2, 0.15, 0.4)
+    features = FeatureExtractor(FeatureParams(detector=detector, roi_ratios=roi)).extract(textured)
+    x0, x1, y0, y1 = roi_bounds(640, 480, roi)
+    assert (x0, x1, y0, y1) == (64, 512, 72, 288)
+    assert len(features) > 50
+    x, y = features.keypoints[:, 0], features.keypoints[:, 1]
+    assert np.all((x >= x0 - 0.5) & (x < x1) & (y >= y0 - 0.5) & (y < y1))
+
+
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_flat_image_has_no_features(detector):
+    features = FeatureExtractor(FeatureParams(detector=detector)).extract(np.full((480, 640), 128, np.uint8))
+    assert len(features) == 0
+    assert features.descriptors.shape[0] == 0 and features.keypoints.shape == (0, 2)
+
+
+def test_response_threshold_filters(textured):
+    all_features = FeatureExtractor(FeatureParams(max_features=0)).extract(textured)
+    threshold = float(np.median(all_features.responses))
+    strong = FeatureExtractor(FeatureParams(max_features=0, response_threshold=threshold)).extract(textured)
+    assert 0 < len(strong) < len(all_features)
+    assert strong.responses.min() > threshold
+
+
+def test_gray_and_rgb_agree(textured):
+    extractor = FeatureExtractor(FeatureParams())
+    gray = cv2.cvtColor(textured, cv2.COLOR_RGB2GRAY)
+    np.testing.assert_array_equal(extractor.extract(textured).keypoints, extractor.extract(gray).keypoints)
+
+
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_deterministic(textured, detector):
+    extractor = FeatureExtractor(FeatureParams(detector=detector))
+    a, b = extractor.extract(textured), extractor.extract(textured.copy())
+    np.testing.assert_array_equal(a.keypoints, b.keypoints)
+    np.testing.assert_array_equal(a.descriptors, b.descriptors)
+
+
+@pytest.mark.parametrize("bad", [
+    np.zeros((48, 64), np.uint16),
+    np.zeros((48, 64, 3), np.float32),
+    np.zeros((48, 64, 4), np.uint8),
+    np.zeros((48,), np.uint8),
+    np.zeros((0, 64), np.uint8),
+    [[0, 1], [2, 3]],
+])
+def test_bad_images_raise(bad):
+    with pytest.raises(SensorDataError):
+        FeatureExtractor(FeatureParams()).extract(bad)
+
+
+def test_binary_flag():
+    assert FeatureExtractor(FeatureParams(detector="gftt_orb")).binary
+    assert FeatureExtractor(FeatureParams(detector="orb")).binary
+    assert not FeatureExtractor(FeatureParams(detector="sift")).binary
+
+
+def test_real_frame_full_quota_away_from_border(real_image):
+    """On a real 640x480 frame the default extractor fills T_maxFeatures despite ORB's border."""
+    features = FeatureExtractor(FeatureParams()).extract(real_image)
+    assert isinstance(features, Features)
+    assert len(features) == FeatureParams().max_features
+    assert features.keypoints[:, 0].min() >= 0 and features.keypoints[:, 0].max() < 640
