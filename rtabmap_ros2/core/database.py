@@ -346,6 +346,23 @@ def _reference_rows(node_id: int, word_ids: np.ndarray) -> list[tuple]:
     return list(zip(repeat(node_id), ids.tolist(), counts.tolist()))
 
 
+def _word_rows(words: dict[int, np.ndarray]) -> list[tuple]:
+    """(id, dtype, dim, descriptor bytes) rows; one dtype and size check for the whole batch."""
+    if not words:
+        return []
+    descriptors = [np.asarray(d) for d in words.values()]
+    kinds = {(d.dtype, d.shape) for d in descriptors}
+    if len(kinds) != 1:
+        raise DatabaseError(f"words of one batch mix descriptor types/shapes {sorted(map(str, kinds))}")
+    dtype, shape = kinds.pop()
+    if dtype.name not in DESCRIPTOR_DTYPES or len(shape) != 1 or shape[0] == 0:
+        first = next(iter(words))
+        raise DatabaseError(f"word {first}: descriptors must be non-empty (D,) uint8 or float32 arrays, "
+                            f"got shape {shape} dtype {dtype}")
+    return list(zip([int(i) for i in words], repeat(dtype.name), repeat(shape[0]),
+                    [d.tobytes() for d in descriptors]))
+
+
 def _json_default(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
@@ -359,13 +376,9 @@ def _prepare(batch: WriteBatch) -> _Rows:
     rows = _Rows()
     rows.deleted_links = [(int(a), int(b), int(b), int(a)) for a, b in batch.deleted_links]
     rows.deleted_locations = [(int(i),) for i in batch.deleted_locations]
-    for word_id, descriptor in batch.words.items():
-        d = np.asarray(descriptor)
-        if d.dtype.name not in DESCRIPTOR_DTYPES or d.ndim != 1 or d.size == 0:
-            raise DatabaseError(f"word {word_id}: descriptor must be a non-empty (D,) uint8 or float32 array, "
-                                f"got shape {d.shape} dtype {d.dtype}")
-        rows.words.append((int(word_id), d.dtype.name, int(d.size), d.tobytes()))
-        rows.max_word_id = max(rows.max_word_id, int(word_id))
+    rows.words = _word_rows(batch.words)
+    if rows.words:
+        rows.max_word_id = max(row[0] for row in rows.words)
     for sig, blobs in batch.locations:
         node_id = int(sig.id)
         if node_id <= 0:
