@@ -18,9 +18,10 @@ Measured (medians over the frames, warm page cache, one process):
 * load_nodes / load_links of the whole map (global map export), median of 5 calls;
 * file size per node after close (checkpointed, rollback-journal mode).
 
-Baseline in the same run, interleaved frame by frame with ours: the same bytes (one frame's blobs concatenated) written as ONE row of
-a one-table SQLite file with the same pragmas, and read back by id: the floor of what SQLite
-costs, so the difference is the schema's (words table, references, per-table rows).
+Baseline in the same run, interleaved frame by frame with ours: the same bytes (one frame's blobs
+concatenated) written as ONE row of a one-table SQLite file with the same pragmas, and read back
+by id: the floor of what SQLite costs, so the difference is the schema's (words table, location ->
+word references, one row per table).
 
 Usage: ``python bench/bench_database.py [--quick]`` (quick: 60 frames instead of 300).
 Writes ``bench/results/database.json``.

@@ -310,8 +310,7 @@ class _Rows:
     cameras: list[tuple] = field(default_factory=list)
     camera_deletes: list[tuple] = field(default_factory=list)
     sensor_data: list[tuple] = field(default_factory=list)
-    reference_nodes: list[tuple] = field(default_factory=list)
-    references: list[tuple] = field(default_factory=list)
+    references: dict[int, list[tuple]] = field(default_factory=dict)  # node id -> its reference rows
     word_updates: list[tuple] = field(default_factory=list)
     weights: list[tuple] = field(default_factory=list)
     in_wm: list[tuple] = field(default_factory=list)
@@ -392,8 +391,7 @@ def _prepare(batch: WriteBatch) -> _Rows:
         rows.nodes.append((node_id, int(sig.map_id), int(sig.stamp_ns), int(sig.weight), int(bool(sig.bad)),
                            pose, n, word_ids, keypoints, points3d))
         rows.maps.append((int(sig.map_id), int(sig.stamp_ns), time.time_ns()))
-        rows.reference_nodes.append((node_id,))
-        rows.references.extend(_reference_rows(node_id, np.asarray(sig.word_ids)))
+        rows.references[node_id] = _reference_rows(node_id, np.asarray(sig.word_ids))
         rows.max_location_id = max(rows.max_location_id, node_id)
         if sig.scan is None:
             rows.scan_deletes.append((node_id,))
@@ -421,8 +419,7 @@ def _prepare(batch: WriteBatch) -> _Rows:
         if ids.ndim != 1:
             raise DatabaseError(f"location {node_id}: re-quantised word_ids must be (N,), got shape {ids.shape}")
         rows.word_updates.append((ids.tobytes(), int(node_id), int(ids.size)))
-        rows.reference_nodes.append((int(node_id),))
-        rows.references.extend(_reference_rows(int(node_id), ids))
+        rows.references[int(node_id)] = _reference_rows(int(node_id), ids)  # replaces the location's
     rows.weights = [(int(w), int(i)) for i, w in batch.weights.items()]
     rows.in_wm = [(int(bool(flag)), int(i)) for i, flag in batch.in_wm.items()]
     for link in batch.links:
@@ -493,8 +490,9 @@ def _apply_statements(conn: sqlite3.Connection, rows: _Rows) -> None:
         if stored[0] != n:
             raise DatabaseError(f"re-quantised words of location {node_id}: {n} word ids for {stored[0]} keypoints")
         ex("UPDATE nodes SET word_ids = ? WHERE id = ?", (blob, node_id))
-    many("DELETE FROM node_words WHERE node_id = ?", rows.reference_nodes)
-    many("INSERT INTO node_words (node_id, word_id, count) VALUES (?, ?, ?)", rows.references)
+    many("DELETE FROM node_words WHERE node_id = ?", [(node_id,) for node_id in rows.references])
+    many("INSERT INTO node_words (node_id, word_id, count) VALUES (?, ?, ?)",
+         [row for node_rows in rows.references.values() for row in node_rows])
     for column, updates in (("weight", rows.weights), ("in_wm", rows.in_wm)):
         for value, node_id in updates:
             if ex(f"UPDATE nodes SET {column} = ? WHERE id = ?", (value, node_id)).rowcount != 1:
@@ -594,7 +592,8 @@ class Database:
                 conn = sqlite3.connect(str(self.path), timeout=BUSY_TIMEOUT_S, isolation_level=None)
                 conn.execute("PRAGMA synchronous=NORMAL")
         except sqlite3.Error as e:
-            raise DatabaseError(f"cannot open database {self.path}: {e}") from e
+            raise DatabaseError(f"cannot open database {self.path}: {e} (the file was left untouched; "
+                                "if it is damaged, restore it from a backup)") from e
         return conn
 
     def _create_schema(self) -> None:

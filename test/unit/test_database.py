@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import os
-import shutil
 import sqlite3
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +32,8 @@ def make_signature(rng, node_id: int, map_id: int = 0, n: int = N_WORDS, first_w
                          transforms.from_xyz_quat_xyzw([0.05, 0, 0.3], [-0.5, 0.5, -0.5, 0.5]))
     return Signature(id=node_id, map_id=map_id, stamp_ns=1_700_000_000_000_000_000 + node_id, weight=node_id % 3,
                      word_ids=word_ids, keypoints=rng.uniform(0, 60, (n, 2)).astype(np.float32),
-                     points3d=points3d, T_odom_base=transforms.from_xyz_quat_xyzw(rng.normal(size=3), rng.normal(size=4)),
+                     points3d=points3d,
+                     T_odom_base=transforms.from_xyz_quat_xyzw(rng.normal(size=3), rng.normal(size=4)),
                      scan=scan, camera=camera)
 
 
@@ -222,6 +220,12 @@ def test_requantised_words_update_signature_and_references(db, rng):
     assert max(refs.values()) == 2  # repeated words are counted
     with pytest.raises(DatabaseError, match="word ids for"):
         db.write(WriteBatch(location_words={1: new_ids[:3]}))
+    # A location inserted and re-quantised in the same batch ends with the re-quantised words.
+    sig2 = make_signature(rng, 2)
+    db.write(WriteBatch(locations=[(sig2, None)], location_words={2: sig2.word_ids + 5000}))
+    np.testing.assert_array_equal(db.load_signature(2).word_ids, sig2.word_ids + 5000)
+    refs2 = db.conn.execute("SELECT min(word_id) FROM node_words WHERE node_id = 2").fetchone()[0]
+    assert refs2 == sig2.word_ids.min() + 5000
 
 
 def test_statistics_round_trip(db):
@@ -301,6 +305,29 @@ def test_truncated_copy_is_refused_and_untouched(tmp_path, rng, fraction):
         Database(truncated)
     assert truncated.read_bytes() == before
     assert not (tmp_path / "truncated.db-wal").exists()
+
+
+def test_damaged_schema_page_is_refused_and_untouched(tmp_path, rng):
+    path = tmp_path / "damaged.db"
+    with Database(path) as database:
+        database.write(WriteBatch(locations=[(make_signature(rng, 1), None)]))
+    data = bytearray(path.read_bytes())
+    page_size = int.from_bytes(data[16:18], "big")
+    data[100:page_size] = rng.integers(0, 256, page_size - 100, dtype=np.uint8).tobytes()  # sqlite_master
+    path.write_bytes(bytes(data))
+    with pytest.raises(DatabaseError, match="damaged.db"):
+        Database(path)
+    assert path.read_bytes() == bytes(data)
+
+
+def test_paths_with_uri_characters(tmp_path, rng):
+    path = tmp_path / "a dir #1" / "map?v=2%.db"
+    path.parent.mkdir()
+    with Database(path) as database:
+        database.write(WriteBatch(locations=[(make_signature(rng, 1), None)]))
+    with Database(path, read_only=True) as database:
+        assert list(database.load_nodes()) == [1]
+    assert sorted(p.name for p in path.parent.iterdir()) == ["map?v=2%.db"]
 
 
 def test_read_only_never_modifies_the_file(db_path, rng):
