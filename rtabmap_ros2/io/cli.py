@@ -20,6 +20,7 @@ SUBCOMMANDS = [
     "carmen2bag",
     "optimize",
     "play",
+    "simulate",
 ]
 
 
