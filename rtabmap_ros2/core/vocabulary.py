@@ -1,0 +1,378 @@
+"""Incremental visual vocabulary and inverted index (2013 §III-A, Alg. 2 lines 4-5).
+
+Each word is one feature descriptor. A new image's descriptors are quantised by a 2-nearest-
+neighbour search over the current words and the nearest neighbour distance ratio (NNDR) test:
+a descriptor is the nearest word if ``d1 < T_NNDR * d2``; otherwise it becomes a new word.
+
+The paper rebuilt FLANN kd-trees over the whole vocabulary at every frame, its most expensive
+step. Here the index is incremental (``bench/bench_vocabulary.py`` measured the choice):
+
+* flat: exact brute force (faiss ``knn_hamming`` / ``knn``) over a contiguous numpy buffer of the
+  words. Removing a word moves the last row into its slot: O(removed), never a rebuild.
+* IVF: a faiss inverted file (``IndexBinaryIVF`` for ORB, ``IndexIVFFlat`` for SIFT) holding the
+  word ids natively, with a hash-table direct map so ``remove_ids`` costs O(removed). Used from
+  ``ivf_min_words`` words on (``index=auto``). Its coarse quantiser is trained on the current words
+  and retrained only when the vocabulary has grown by ``ivf_retrain_growth`` since the last
+  training; between trainings words are added to / removed from the lists incrementally.
+
+Distances: Hamming (bits) for binary descriptors, Euclidean for float ones (faiss returns squared
+L2: the square root is taken before the ratio test).
+
+Fewer than two words: the NNDR test needs a second neighbour, so every descriptor is a new word.
+The same holds when the IVF probes find fewer than two words for a descriptor.
+
+The inverted index maps word -> {location id: occurrences} and gives the numerator of Eq. 1 (the
+matched word pairs) for every location sharing a word with a query signature (:meth:`scores`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import defaultdict
+from typing import Iterable
+
+import faiss
+import numpy as np
+
+from rtabmap_ros2.core.params import VocabularyParams
+from rtabmap_ros2.errors import SensorDataError
+
+logger = logging.getLogger(__name__)
+
+# Initial capacity (words) of the descriptor buffer; it doubles when full.
+INITIAL_CAPACITY = 4096
+# Smallest vocabulary an IVF is trained on when index="ivf" (below it the flat index is used).
+IVF_MIN_TRAIN_WORDS = 1000
+# IVF lists: IVF_LISTS_PER_SQRT * sqrt(words at training). bench_vocabulary.py, 200 k ORB words:
+# 2 sqrt(n) lists with nprobe 32 agree with exact search on 99.7 % of decisions; 4 sqrt(n) lists
+# query faster but k-means training (cost ~ lists^2) blocked the frame for 15-50 s.
+IVF_LISTS_PER_SQRT = 2.0
+# k-means training sample per list: faiss's minimum, since training blocks the frame it runs in
+# (200 k words, 894 lists: ~6 s; retraining happens at 4x growth only).
+IVF_TRAIN_POINTS_PER_LIST = 39
+IVF_MIN_POINTS_PER_LIST = 39
+# Seed of the training sample draw (deterministic vocabularies).
+IVF_TRAIN_SEED = 1234
+NEAREST_NEIGHBOURS = 2
+
+
+def _as_ids(word_ids: Iterable[int] | np.ndarray) -> np.ndarray:
+    """(N,) int64 contiguous array of word ids."""
+    return np.ascontiguousarray(np.asarray(word_ids, dtype=np.int64).reshape(-1))
+
+
+class Vocabulary:
+    """Words (descriptors) with int64 ids, a nearest-neighbour index and the inverted index."""
+
+    def __init__(self, params: VocabularyParams, binary: bool, next_word_id: int = 1):
+        """Empty vocabulary.
+
+        Args:
+            params: NNDR threshold and index choice.
+            binary: True for binary descriptors (uint8 rows, Hamming), False for float32 (L2).
+            next_word_id: first id given to a new word (ids are never reused: pass the database's
+                largest word id + 1 when continuing a map).
+        """
+        if next_word_id < 1:
+            raise ValueError(f"next_word_id={next_word_id} is invalid: word ids start at 1")
+        self.params = params
+        self.binary = binary
+        self.next_word_id = int(next_word_id)
+        self._dtype = np.uint8 if binary else np.float32
+        self._dim: int | None = None  # descriptor length (bytes or floats), set by the first words
+        # Words: rows [0, _count) of _descriptors, with their ids in _ids; _slot maps id -> row.
+        self._descriptors: np.ndarray | None = None
+        self._ids = np.zeros(0, np.int64)
+        self._slot: dict[int, int] = {}
+        self._count = 0
+        # IVF index (None while the flat index is used) and the size it was trained at.
+        self._ivf = None
+        self._ivf_trained_size = 0
+        # Inverted index: word id -> {location id: occurrences of the word in the location}.
+        self._references: dict[int, dict[int, int]] = {}
+
+    # ------------------------------------------------------------------ words
+    def __len__(self) -> int:
+        """Number of words currently indexed."""
+        return self._count
+
+    @property
+    def uses_ivf(self) -> bool:
+        """True when queries go through the (approximate) IVF index."""
+        return self._ivf is not None
+
+    def contains(self, word_id: int) -> bool:
+        """True if the word is in the vocabulary (in RAM)."""
+        return int(word_id) in self._slot
+
+    def word_ids(self) -> np.ndarray:
+        """(N,) int64 ids of all words, in storage order."""
+        return self._ids[: self._count].copy()
+
+    def quantize(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Quantise an image's descriptors (Alg. 2 line 5); unmatched ones become new words.
+
+        Matching uses the words present before the call: two descriptors of the same image never
+        match each other.
+
+        Args:
+            descriptors: (N,D) uint8 (binary) or float32 (float) descriptors.
+
+        Returns:
+            ``(word_ids, is_new)``: (N,) int64 word of each descriptor and (N,) bool, True where a
+            new word was created.
+        """
+        descriptors = self._check_descriptors(descriptors)
+        word_ids = self.match(descriptors)
+        is_new = word_ids < 0
+        n_new = int(is_new.sum())
+        if n_new:
+            # New words (§III-A): "a new word is created with the feature's descriptor".
+            new_ids = np.arange(self.next_word_id, self.next_word_id + n_new, dtype=np.int64)
+            word_ids[is_new] = new_ids
+            self.next_word_id += n_new
+            self._insert(new_ids, descriptors[is_new])
+        return word_ids, is_new
+
+    def match(self, descriptors: np.ndarray) -> np.ndarray:
+        """Nearest word of each descriptor passing the NNDR test, or -1; adds nothing.
+
+        Args:
+            descriptors: (N,D) uint8 (binary) or float32 (float) descriptors.
+
+        Returns:
+            (N,) int64 word ids, -1 where the NNDR test failed (or fewer than two words exist).
+        """
+        descriptors = self._check_descriptors(descriptors)
+        n = descriptors.shape[0]
+        result = np.full(n, -1, np.int64)
+        if n == 0 or self._count < NEAREST_NEIGHBOURS:
+            return result
+        distances, neighbours = self._search(descriptors)
+        if not self.binary:
+            # faiss L2 distances are squared: NNDR compares distances.
+            distances = np.sqrt(np.maximum(distances, 0.0))
+        # NNDR (§III-A): d1 < T_NNDR * d2; a missing second neighbour (IVF) fails the test.
+        found = (neighbours[:, 0] >= 0) & (neighbours[:, 1] >= 0)
+        accepted = found & (distances[:, 0] < self.params.nndr * distances[:, 1])
+        result[accepted] = neighbours[accepted, 0]
+        return result
+
+    def add_words(self, word_ids, descriptors: np.ndarray) -> None:
+        """Re-insert words with their ids (retrieval from LTM, Alg. 3).
+
+        Args:
+            word_ids: (N,) int64 ids, not currently in the vocabulary.
+            descriptors: (N,D) descriptors of these words.
+        """
+        ids = _as_ids(word_ids)
+        descriptors = self._check_descriptors(descriptors)
+        if ids.shape[0] != descriptors.shape[0]:
+            raise ValueError(f"add_words got {ids.shape[0]} ids for {descriptors.shape[0]} descriptors")
+        if ids.size == 0:
+            return
+        if ids.min() < 1:
+            raise ValueError(f"word id {int(ids.min())} is invalid: word ids are >= 1")
+        present = [int(w) for w in ids if int(w) in self._slot]
+        if present or np.unique(ids).size != ids.size:
+            raise ValueError(f"add_words: ids already in the vocabulary or repeated: {present[:10]} "
+                             "(remove them first or re-quantise their descriptors)")
+        self._insert(ids, descriptors)
+        self.next_word_id = max(self.next_word_id, int(ids.max()) + 1)
+
+    def remove_words(self, word_ids) -> None:
+        """Remove words from the vocabulary and the index (transfer to LTM, rehearsal), O(removed).
+
+        Their inverted-index entries are dropped too.
+
+        Raises:
+            KeyError: a word is not in the vocabulary.
+        """
+        ids = np.unique(_as_ids(word_ids))
+        if ids.size == 0:
+            return
+        missing = [int(w) for w in ids if int(w) not in self._slot]
+        if missing:
+            raise KeyError(f"remove_words: words not in the vocabulary: {missing[:10]}")
+        if self._ivf is not None:
+            selector = faiss.IDSelectorArray(ids.size, faiss.swig_ptr(ids))
+            self._ivf.remove_ids(selector)
+        for word in ids.tolist():
+            # Move the last row into the freed slot.
+            slot = self._slot.pop(word)
+            last = self._count - 1
+            if slot != last:
+                moved = int(self._ids[last])
+                self._descriptors[slot] = self._descriptors[last]
+                self._ids[slot] = moved
+                self._slot[moved] = slot
+            self._count = last
+            self._references.pop(word, None)
+
+    def descriptors_of(self, word_ids) -> np.ndarray:
+        """(N,D) descriptors of the given words (KeyError if one is absent)."""
+        ids = _as_ids(word_ids)
+        if self._dim is None:
+            if ids.size:
+                raise KeyError(f"descriptors_of: the vocabulary is empty (asked {ids[:10].tolist()})")
+            return np.zeros((0, 0), self._dtype)
+        try:
+            slots = np.fromiter((self._slot[w] for w in ids.tolist()), np.int64, ids.size)
+        except KeyError as error:
+            raise KeyError(f"descriptors_of: word {error.args[0]} is not in the vocabulary") from None
+        return self._descriptors[slots].copy()
+
+    # ------------------------------------------------------- inverted index
+    def add_references(self, location_id: int, word_ids: np.ndarray) -> None:
+        """Record that a location contains these words (one entry per occurrence)."""
+        location_id = int(location_id)
+        words, counts = np.unique(_as_ids(word_ids), return_counts=True)
+        for word, count in zip(words.tolist(), counts.tolist()):
+            locations = self._references.setdefault(word, {})
+            locations[location_id] = locations.get(location_id, 0) + count
+
+    def remove_references(self, location_id: int, word_ids: np.ndarray) -> list[int]:
+        """Remove a location's occurrences of these words.
+
+        Returns:
+            Sorted ids of the words left referenced by no location (candidates for removal).
+        """
+        location_id = int(location_id)
+        orphans = []
+        words, counts = np.unique(_as_ids(word_ids), return_counts=True)
+        for word, count in zip(words.tolist(), counts.tolist()):
+            locations = self._references.get(word)
+            if not locations or location_id not in locations:
+                continue
+            remaining = locations[location_id] - count
+            if remaining > 0:
+                locations[location_id] = remaining
+                continue
+            del locations[location_id]
+            if not locations:
+                del self._references[word]
+                orphans.append(word)
+        return orphans
+
+    def references(self, word_id: int) -> dict[int, int]:
+        """Location id -> occurrences of the word (a copy; empty if unreferenced)."""
+        return dict(self._references.get(int(word_id), {}))
+
+    def scores(self, word_counts: dict[int, int], candidates: set[int] | None = None) -> dict[int, int]:
+        """Matched word pairs (Eq. 1 numerator) between a signature and every location sharing a word.
+
+        Args:
+            word_counts: word id -> occurrences in the query signature.
+            candidates: restrict to these location ids (None: all referenced locations).
+
+        Returns:
+            location id -> sum over shared words of min(occurrences in query, in location).
+        """
+        pairs: defaultdict[int, int] = defaultdict(int)
+        references = self._references
+        for word, count in word_counts.items():
+            locations = references.get(word)
+            if not locations:
+                continue
+            if candidates is None:
+                for location, n in locations.items():
+                    pairs[location] += n if n < count else count
+            else:
+                for location, n in locations.items():
+                    if location in candidates:
+                        pairs[location] += n if n < count else count
+        return dict(pairs)
+
+    # -------------------------------------------------------------- internals
+    def _check_descriptors(self, descriptors: np.ndarray) -> np.ndarray:
+        """Validated contiguous (N,D) descriptors of the vocabulary's dtype."""
+        if not isinstance(descriptors, np.ndarray) or descriptors.ndim != 2:
+            shape = getattr(descriptors, "shape", None)
+            raise SensorDataError(f"descriptors must be a 2-D numpy array (N,D), got shape {shape}")
+        if self.binary and descriptors.dtype != np.uint8:
+            raise SensorDataError(f"binary descriptors must be uint8, got {descriptors.dtype}")
+        if not self.binary and not np.issubdtype(descriptors.dtype, np.floating):
+            raise SensorDataError(f"float descriptors must be float32, got {descriptors.dtype}")
+        if self._dim is not None and descriptors.shape[1] != self._dim and descriptors.shape[0]:
+            raise SensorDataError(
+                f"descriptors have {descriptors.shape[1]} columns, the vocabulary's words have {self._dim}")
+        return np.ascontiguousarray(descriptors, dtype=self._dtype)
+
+    def _insert(self, ids: np.ndarray, descriptors: np.ndarray) -> None:
+        """Append words to the buffer and the index (O(added), amortised)."""
+        n = ids.size
+        if self._descriptors is None:
+            self._dim = int(descriptors.shape[1])
+            self._descriptors = np.zeros((INITIAL_CAPACITY, self._dim), self._dtype)
+            self._ids = np.zeros(INITIAL_CAPACITY, np.int64)
+        needed = self._count + n
+        if needed > self._descriptors.shape[0]:
+            capacity = max(needed, 2 * self._descriptors.shape[0])
+            grown = np.zeros((capacity, self._dim), self._dtype)
+            grown[: self._count] = self._descriptors[: self._count]
+            grown_ids = np.zeros(capacity, np.int64)
+            grown_ids[: self._count] = self._ids[: self._count]
+            self._descriptors, self._ids = grown, grown_ids
+        start = self._count
+        self._descriptors[start:needed] = descriptors
+        self._ids[start:needed] = ids
+        self._slot.update(zip(ids.tolist(), range(start, needed)))
+        self._count = needed
+        if self._ivf is not None:
+            self._ivf.add_with_ids(descriptors, ids)
+        self._maybe_train_ivf()
+
+    def _ivf_threshold(self) -> int | None:
+        """Vocabulary size from which the IVF index is used (None: never)."""
+        if self.params.index == "flat":
+            return None
+        if self.params.index == "ivf":
+            return IVF_MIN_TRAIN_WORDS
+        return self.params.ivf_min_words
+
+    def _maybe_train_ivf(self) -> None:
+        """Build the IVF once big enough; retrain it after ``ivf_retrain_growth`` growth."""
+        threshold = self._ivf_threshold()
+        if threshold is None or self._count < threshold:
+            return
+        if self._ivf is not None and self._count < self.params.ivf_retrain_growth * self._ivf_trained_size:
+            return
+        self._train_ivf()
+
+    def _train_ivf(self) -> None:
+        """(Re)build the IVF: k-means on (a sample of) the current words, then add them all."""
+        words = self._descriptors[: self._count]
+        ids = self._ids[: self._count]
+        n_lists = max(1, min(int(round(IVF_LISTS_PER_SQRT * math.sqrt(self._count))),
+                             self._count // IVF_MIN_POINTS_PER_LIST))
+        n_train = min(self._count, IVF_TRAIN_POINTS_PER_LIST * n_lists)
+        sample = np.random.default_rng(IVF_TRAIN_SEED).choice(self._count, n_train, replace=False)
+        sample.sort()
+        training = np.ascontiguousarray(words[sample])
+        if self.binary:
+            bits = 8 * self._dim
+            index = faiss.IndexBinaryIVF(faiss.IndexBinaryFlat(bits), bits, n_lists)
+        else:
+            index = faiss.IndexIVFFlat(faiss.IndexFlatL2(self._dim), self._dim, n_lists)
+        index.train(training)
+        # Hash-table direct map: remove_ids in O(removed) instead of scanning every list.
+        index.set_direct_map_type(faiss.DirectMap.Hashtable)
+        index.nprobe = self.params.ivf_nprobe
+        index.add_with_ids(words, ids)
+        logger.info("vocabulary: IVF trained on %d of %d words, %d lists", n_train, self._count, n_lists)
+        self._ivf = index
+        self._ivf_trained_size = self._count
+
+    def _search(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """2-NN distances (N,2) and word ids (N,2) (-1 where not found)."""
+        if self._ivf is not None:
+            distances, ids = self._ivf.search(descriptors, NEAREST_NEIGHBOURS)
+            return distances.astype(np.float32), ids
+        words = self._descriptors[: self._count]
+        if self.binary:
+            distances, slots = faiss.knn_hamming(descriptors, words, NEAREST_NEIGHBOURS)
+        else:
+            distances, slots = faiss.knn(descriptors, words, NEAREST_NEIGHBOURS)
+        ids = np.where(slots >= 0, self._ids[np.maximum(slots, 0)], -1)
+        return distances.astype(np.float32), ids

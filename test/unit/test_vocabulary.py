@@ -1,0 +1,228 @@
+"""Incremental vocabulary and inverted index (2013 §III-A; Eq. 1 numerator)."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import cv2
+import numpy as np
+import pytest
+
+from rtabmap_ros2.core.features import FeatureExtractor
+from rtabmap_ros2.core.params import FeatureParams, VocabularyParams
+from rtabmap_ros2.core.vocabulary import Vocabulary
+from rtabmap_ros2.errors import SensorDataError
+
+
+def random_binary(rng, n: int) -> np.ndarray:
+    return rng.integers(0, 256, (n, 32), dtype=np.uint8)
+
+
+def flip_bits(rng, descriptors: np.ndarray, n_bits: int) -> np.ndarray:
+    """Flip n_bits random bits of every row (a slightly different view of the same feature)."""
+    out = descriptors.copy()
+    for row in out:
+        bits = rng.choice(256, n_bits, replace=False)
+        for bit in bits:
+            row[bit // 8] ^= np.uint8(1 << (bit % 8))
+    return out
+
+
+@pytest.fixture
+def vocab() -> Vocabulary:
+    return Vocabulary(VocabularyParams(), binary=True)
+
+
+def test_empty_and_single_word_give_new_words(vocab, rng):
+    descriptors = random_binary(rng, 1)
+    ids, is_new = vocab.quantize(descriptors)
+    assert is_new.all() and ids.tolist() == [1] and len(vocab) == 1
+    # One word: no second neighbour for the NNDR test, so even the identical descriptor is new.
+    ids, is_new = vocab.quantize(descriptors)
+    assert is_new.all() and ids.tolist() == [2] and len(vocab) == 2
+    assert vocab.next_word_id == 3
+
+
+def test_quantize_twice_maps_to_same_words(vocab, rng):
+    descriptors = random_binary(rng, 400)
+    first, new_first = vocab.quantize(descriptors)
+    assert new_first.all() and len(vocab) == 400
+    assert first.dtype == np.int64 and len(np.unique(first)) == 400
+    second, new_second = vocab.quantize(descriptors)
+    assert not new_second.any()
+    np.testing.assert_array_equal(first, second)
+    assert len(vocab) == 400
+
+
+def test_same_image_descriptors_do_not_match_each_other(vocab, rng):
+    descriptors = random_binary(rng, 50)
+    ids, is_new = vocab.quantize(np.concatenate([descriptors, descriptors]))
+    assert is_new.all() and len(np.unique(ids)) == 100
+
+
+def test_perturbed_descriptors_map_mostly_to_same_words(vocab, rng):
+    descriptors = random_binary(rng, 2000)
+    ids, _ = vocab.quantize(descriptors)
+    perturbed = flip_bits(rng, descriptors, 12)  # 12 of 256 bits; random words are ~128 bits apart
+    matched = vocab.match(perturbed)
+    assert np.mean(matched == ids) > 0.95
+    again, is_new = vocab.quantize(perturbed)
+    assert np.mean(again == ids) > 0.95 and is_new.sum() < 100
+
+
+def test_remove_words_then_quantize_creates_new_words(vocab, rng):
+    descriptors = random_binary(rng, 300)
+    ids, _ = vocab.quantize(descriptors)
+    removed = ids[:100]
+    vocab.remove_words(removed)
+    assert len(vocab) == 200 and not vocab.contains(int(removed[0])) and vocab.contains(int(ids[150]))
+    again, is_new = vocab.quantize(descriptors)
+    assert is_new[:100].all() and not is_new[100:].any()
+    assert again[:100].min() > ids.max(), "word ids are never reused"
+    np.testing.assert_array_equal(again[100:], ids[100:])
+
+
+def test_add_words_restores_ids(vocab, rng):
+    descriptors = random_binary(rng, 300)
+    ids, _ = vocab.quantize(descriptors)
+    kept = vocab.descriptors_of(ids[:100])
+    np.testing.assert_array_equal(kept, descriptors[:100])
+    vocab.remove_words(ids[:100])
+    vocab.add_words(ids[:100], kept)  # retrieval: the old words come back with their ids
+    again, is_new = vocab.quantize(descriptors)
+    assert not is_new.any()
+    np.testing.assert_array_equal(again, ids)
+    with pytest.raises(ValueError):
+        vocab.add_words(ids[:1], kept[:1])
+
+
+def test_add_words_moves_next_word_id(rng):
+    vocab = Vocabulary(VocabularyParams(), binary=True)
+    vocab.add_words(np.array([10, 20]), random_binary(rng, 2))
+    assert vocab.next_word_id == 21
+    ids, _ = vocab.quantize(random_binary(rng, 3))
+    assert ids.min() >= 21
+
+
+def test_remove_unknown_word_raises(vocab, rng):
+    vocab.quantize(random_binary(rng, 5))
+    with pytest.raises(KeyError):
+        vocab.remove_words([999])
+    with pytest.raises(KeyError):
+        vocab.descriptors_of([999])
+
+
+def test_bad_descriptors_raise(vocab, rng):
+    with pytest.raises(SensorDataError):
+        vocab.quantize(rng.random((4, 32)).astype(np.float32))
+    with pytest.raises(SensorDataError):
+        vocab.quantize(np.zeros(32, np.uint8))
+    vocab.quantize(random_binary(rng, 4))
+    with pytest.raises(SensorDataError):
+        vocab.quantize(np.zeros((4, 16), np.uint8))
+
+
+def test_references_and_orphans(vocab):
+    vocab.add_references(1, np.array([5, 6, 6, 7]))
+    vocab.add_references(2, np.array([6, 8]))
+    assert vocab.references(6) == {1: 2, 2: 1}
+    assert vocab.references(99) == {}
+    assert vocab.remove_references(1, np.array([5, 6, 6, 7])) == [5, 7]
+    assert vocab.references(6) == {2: 1}
+    assert vocab.remove_references(2, np.array([6, 8])) == [6, 8]
+    assert vocab.references(6) == {}
+
+
+def test_remove_words_drops_their_references(vocab, rng):
+    ids, _ = vocab.quantize(random_binary(rng, 10))
+    vocab.add_references(3, ids)
+    vocab.remove_words(ids[:2])
+    assert vocab.references(int(ids[0])) == {} and vocab.references(int(ids[5])) == {3: 1}
+
+
+def brute_force_pairs(query: dict[int, int], signatures: dict[int, list[int]]) -> dict[int, int]:
+    """Eq. 1 numerator computed directly from the signatures."""
+    out = {}
+    for location, words in signatures.items():
+        counts = Counter(words)
+        pairs = sum(min(c, counts[w]) for w, c in query.items() if w in counts)
+        if pairs:
+            out[location] = pairs
+    return out
+
+
+def test_scores_equal_brute_force_eq1(vocab, rng):
+    signatures = {loc: rng.integers(1, 300, rng.integers(20, 80)).tolist() for loc in range(1, 60)}
+    for loc, words in signatures.items():
+        vocab.add_references(loc, np.array(words))
+    query_words = rng.integers(1, 300, 70)
+    ids, counts = np.unique(query_words, return_counts=True)
+    query = dict(zip(ids.tolist(), counts.tolist()))
+    expected = brute_force_pairs(query, signatures)
+    assert vocab.scores(query) == expected
+    assert max(expected.values()) >= 2
+    candidates = set(range(1, 60, 3))
+    assert vocab.scores(query, candidates) == {k: v for k, v in expected.items() if k in candidates}
+    # After a location is removed from the index, it is no longer scored.
+    vocab.remove_references(4, np.array(signatures.pop(4)))
+    assert vocab.scores(query) == brute_force_pairs(query, signatures)
+
+
+def test_ivf_agrees_with_flat_on_30k_words(rng):
+    """IVF (auto switch at 20 k words) takes the same NNDR decisions as the exact flat index."""
+    n_words, n_queries = 30_000, 800
+    centres = random_binary(rng, n_words)
+    flat = Vocabulary(VocabularyParams(index="flat"), binary=True)
+    ivf = Vocabulary(VocabularyParams(index="auto", ivf_min_words=20_000), binary=True)
+    ids = np.arange(1, n_words + 1)
+    # Words added in two steps, like a growing map: the IVF is built when the second crosses 20 k.
+    flat.add_words(ids[:10_000], centres[:10_000])
+    ivf.add_words(ids[:10_000], centres[:10_000])
+    assert not ivf.uses_ivf
+    flat.add_words(ids[10_000:], centres[10_000:])
+    ivf.add_words(ids[10_000:], centres[10_000:])
+    assert ivf.uses_ivf and len(ivf) == len(flat) == n_words
+    # Queries: half near existing words (should match), half random (should be new).
+    near = flip_bits(rng, centres[rng.choice(n_words, n_queries // 2, replace=False)], 20)
+    queries = np.concatenate([near, random_binary(rng, n_queries // 2)])
+    exact, approx = flat.match(queries), ivf.match(queries)
+    assert np.mean(exact[: n_queries // 2] >= 0) > 0.9 and np.mean(exact[n_queries // 2:] >= 0) < 0.1
+    assert np.mean(exact == approx) >= 0.97
+    # Incremental changes reach the IVF: removed words are no longer found, added ones are.
+    ivf.remove_words(ids[:100])
+    assert not np.isin(ivf.match(centres[:100]), ids[:100]).any()
+    ivf.add_words(ids[:100], centres[:100])
+    assert np.mean(ivf.match(centres[:100]) == ids[:100]) > 0.9
+
+
+def test_sift_end_to_end(shared_data):
+    """Float descriptors (SIFT, L2): two frames of the TUM pair share many words."""
+    folder = shared_data / "rgbd" / "tum_fr1_xyz_pairs" / "case_1"
+    extractor = FeatureExtractor(FeatureParams(detector="sift"))
+    assert not extractor.binary
+    vocab = Vocabulary(VocabularyParams(), binary=extractor.binary)
+    previous = extractor.extract(cv2.imread(str(folder / "img_prev.png"), cv2.IMREAD_GRAYSCALE))
+    current = extractor.extract(cv2.imread(str(folder / "img_curr.png"), cv2.IMREAD_GRAYSCALE))
+    ids_prev, new_prev = vocab.quantize(previous.descriptors)
+    assert new_prev.all() and len(vocab) == len(previous)
+    ids_curr, new_curr = vocab.quantize(current.descriptors)
+    shared = np.intersect1d(ids_prev, ids_curr)
+    assert len(shared) > 0.3 * len(current), "consecutive frames should share many words"
+    assert (~new_curr).sum() == np.isin(ids_curr, ids_prev).sum()
+    np.testing.assert_allclose(vocab.descriptors_of(ids_prev[:5]), previous.descriptors[:5])
+    vocab.add_references(1, ids_prev)
+    vocab.add_references(2, ids_curr)
+    ids, counts = np.unique(ids_curr, return_counts=True)
+    query = dict(zip(ids.tolist(), counts.tolist()))
+    scores = vocab.scores(query)
+    assert scores == brute_force_pairs(query, {1: ids_prev.tolist(), 2: ids_curr.tolist()})
+    assert scores[2] == len(ids_curr) and scores[1] >= len(shared)
+
+
+def test_float_l2_nndr_uses_distances_not_squares():
+    """d1 = 1, d2 = 1.2: passes NNDR 0.9 on distances (1 < 1.08) but would fail on squares (1 > 1.17)."""
+    vocab = Vocabulary(VocabularyParams(nndr=0.9), binary=False)
+    words = np.zeros((2, 4), np.float32)
+    words[0, 0], words[1, 0] = 1.0, -1.2
+    vocab.add_words([1, 2], words)
+    assert vocab.match(np.zeros((1, 4), np.float32)).tolist() == [1]
