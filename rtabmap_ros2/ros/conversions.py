@@ -34,19 +34,15 @@ from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Link, LinkType
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 from rtabmap_ros2.errors import SensorDataError
+from rtabmap_ros2.io.bag import DEFAULT_T_BASE_CAMERA as _BAG_DEFAULT_T_BASE_CAMERA
 
 NS_PER_S = 1_000_000_000
 MM_PER_M = 1000.0
 
-# Base (x forward, y left, z up; REP 103) -> camera optical frame (z forward, x right, y down),
-# camera at the base origin. Used when a CameraInfo arrives without an extrinsic calibration:
-# without tf2 there is no TF tree to read it from. Same convention as the bag reader's default.
-DEFAULT_T_BASE_CAMERA = np.array([
-    [0.0, 0.0, 1.0, 0.0],
-    [-1.0, 0.0, 0.0, 0.0],
-    [0.0, -1.0, 0.0, 0.0],
-    [0.0, 0.0, 0.0, 1.0],
-])
+# Base -> camera optical frame when a CameraInfo arrives without an extrinsic calibration (no tf2
+# here to read one): the bag reader's default, the optical frame at the base origin with the
+# standard optical rotation (optical z forward = base x).
+DEFAULT_T_BASE_CAMERA = _BAG_DEFAULT_T_BASE_CAMERA
 
 # Colour encodings accepted on rgb/image: bytes per pixel and the channel order to get RGB.
 _COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1}
@@ -258,7 +254,7 @@ def camera_model_from_msg(msg: CameraInfo, T_base_camera: np.ndarray | None = No
     try:
         return CameraModel(fx=float(k[0]), fy=float(k[4]), cx=float(k[2]), cy=float(k[5]),
                            width=int(msg.width), height=int(msg.height),
-                           T_base_camera=DEFAULT_T_BASE_CAMERA.copy() if T_base_camera is None else T_base_camera)
+                           T_base_camera=np.array(DEFAULT_T_BASE_CAMERA) if T_base_camera is None else T_base_camera)
     except SensorDataError as exc:
         raise SensorDataError(f"camera_info unusable: {exc}") from exc
 

@@ -1,0 +1,542 @@
+"""The ``rtabmap`` ROS 2 node: subscribe, convert, synchronise, call the core, publish.
+
+Interface (issue 5; relative names, so namespaces and remapping work):
+
+Subscriptions (QoS ``sensor_data`` by default, ``qos:=reliable`` otherwise)
+    ``odom`` (nav_msgs/Odometry), ``scan`` (sensor_msgs/LaserScan), ``rgb/image`` and
+    ``depth/image`` (sensor_msgs/Image: rgb8/bgr8/mono8; 16UC1 mm or 32FC1 m),
+    ``rgb/camera_info`` (sensor_msgs/CameraInfo). ``subscribe_scan``, ``subscribe_rgb`` (image and
+    camera_info) and ``subscribe_depth`` turn them off.
+Publications (frame ``map_frame_id``)
+    ``mapPath`` (nav_msgs/Path: the optimised local map), ``map`` (nav_msgs/OccupancyGrid,
+    transient local), ``mapGraph`` (visualization_msgs/MarkerArray), ``info``
+    (diagnostic_msgs/DiagnosticArray: one status ``rtabmap`` whose key/values are the frame's
+    ``Statistics.to_dict()`` plus the node's ``node_latency_ms``, ``node_frames_dropped``,
+    ``node_paused``), ``localization_pose`` (geometry_msgs/PoseStamped, localization mode only);
+    TF ``map_frame_id -> odom_frame_id`` when ``tf2_ros`` can be imported.
+Services
+    ``get_map`` (nav_msgs/GetMap), ``export_global_map`` (std_srvs/Trigger), and std_srvs/Empty:
+    ``publish_map``, ``reset``, ``pause``, ``resume``, ``trigger_new_map``, ``backup``,
+    ``set_mode_localization``, ``set_mode_mapping``.
+Parameters
+    every field of :class:`~rtabmap_ros2.core.params.Params` (see :mod:`rtabmap_ros2.ros.params`).
+
+Threads: sensor callbacks (one mutually exclusive group) convert each message and feed the one
+:class:`~rtabmap_ros2.core.sync.FrameSynchronizer`; a completed set becomes a ``SensorFrame`` put
+in a one-slot mailbox (newest wins, replaced frames are counted as dropped). One worker thread
+owns the core (SQLite connections belong to the thread that opened them): it creates the
+``Rtabmap``, runs ``process`` on the mailbox's frame and publishes, and runs the services' core
+calls (reset, backup...) handed to it as commands. Services run in their own callback group, so a
+long export does not stall the sensors.
+
+Bad input (wrong encoding, sizes that disagree, NaN/inf, empty scans, timestamps going backwards,
+NaN odometry) is logged once per topic and kind, counted, and the frame dropped.
+
+Shutdown: rclpy (7.1) installs handlers for SIGINT and SIGTERM that stop ``spin``; ``main``'s
+``finally`` then destroys the node, which joins the worker (finishing the frame in flight) and
+flushes and closes the database.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections import deque
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import OccupancyGrid as OccupancyGridMsg
+from nav_msgs.msg import Odometry, Path as PathMsg
+from nav_msgs.srv import GetMap
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image, LaserScan
+from std_srvs.srv import Empty, Trigger
+from visualization_msgs.msg import MarkerArray
+
+from rtabmap_ros2.core.sensor import SensorFrame
+from rtabmap_ros2.core.sync import MIN_RESET_JUMP_S, FrameSynchronizer, SyncedSet
+from rtabmap_ros2.errors import RtabmapError, SensorDataError
+from rtabmap_ros2.io.bag import DEFAULT_T_BASE_CAMERA, DEFAULT_T_BASE_LASER
+from rtabmap_ros2.ros import conversions as conv
+from rtabmap_ros2.ros.params import declare_parameters
+
+NODE_NAME = "rtabmap"
+NS_PER_S = 1_000_000_000
+# Depth of the reliable publishers and of the subscriptions with qos:=reliable.
+QUEUE_DEPTH = 10
+# How often the silent-topic check runs (s).
+SILENCE_CHECK_PERIOD_S = 1.0
+# Worker wake-up period when idle, so shutdown is noticed (s).
+WORKER_POLL_S = 0.1
+# Latencies kept for `latencies_s` (benchmarks).
+LATENCY_HISTORY = 10000
+EXPORT_STAMP_FORMAT = "%Y%m%d-%H%M%S"
+
+
+class _NoBroadcaster:
+    """Stand-in for tf2_ros.TransformBroadcaster when tf2_ros is not importable."""
+
+    def sendTransform(self, transform) -> None:  # noqa: N802 - tf2_ros's spelling
+        pass
+
+
+class _Command:
+    """A core call handed to the worker thread, with its result or error."""
+
+    def __init__(self, fn: Callable[[], Any]) -> None:
+        self.fn = fn
+        self._done = threading.Event()
+        self._value: Any = None
+        self._error: Optional[BaseException] = None
+
+    def run(self) -> None:
+        try:
+            self._value = self.fn()
+        except Exception as exc:  # noqa: BLE001 - re-raised in the calling thread
+            self._error = exc
+        finally:
+            self._done.set()
+
+    def result(self) -> Any:
+        self._done.wait()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
+def _tf_broadcaster(node: Node):
+    try:
+        from tf2_ros import TransformBroadcaster
+    except ImportError:
+        node.get_logger().info("tf2_ros is not importable (no ROS 2 workspace): the map -> odom "
+                               "transform is not broadcast; the map is still published on mapPath/map")
+        return _NoBroadcaster()
+    return TransformBroadcaster(node)
+
+
+def new_export_folder(export_dir: str | Path, now: Optional[datetime] = None) -> Path:
+    """A new, not yet existing ``export_dir/<YYYYmmdd-HHMMSS[-n]>`` folder (created).
+
+    Raises:
+        RtabmapError: the folder would resolve outside ``export_dir`` (e.g. through a symlink).
+    """
+    root = Path(export_dir).expanduser().resolve()
+    root.mkdir(parents=True, exist_ok=True)
+    name = (now or datetime.now()).strftime(EXPORT_STAMP_FORMAT)
+    candidate, n = root / name, 1
+    while candidate.exists() or candidate.is_symlink():
+        candidate, n = root / f"{name}-{n}", n + 1
+    return checked_export_path(root, candidate, create=True)
+
+
+def checked_export_path(export_dir: str | Path, path: str | Path, create: bool = False) -> Path:
+    """``path`` resolved, refusing anything that leaves ``export_dir``."""
+    root = Path(export_dir).expanduser().resolve()
+    resolved = (root / Path(path).expanduser()).resolve()
+    if resolved == root or not resolved.is_relative_to(root):
+        raise RtabmapError(f"export path {path} resolves to {resolved}, outside export_dir {root}: refused")
+    if create:
+        resolved.mkdir(parents=False, exist_ok=False)
+    return resolved
+
+
+class RtabmapNode(Node):
+    """The thin ROS 2 layer around :class:`~rtabmap_ros2.core.rtabmap.Rtabmap`."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **node_kwargs)
+        from rtabmap_ros2.core.rtabmap import Rtabmap
+
+        self.params = declare_parameters(self)
+        p = self.params.node
+        self.database_path = Path(p.database_path).expanduser()
+        self.database_path.parent.mkdir(parents=True, exist_ok=True)
+
+        # Bookkeeping read by tests and benchmarks.
+        self.frames_processed = 0
+        self.frames_dropped = 0          # replaced in the 1-slot mailbox before being processed
+        self.bad_messages: dict[tuple[str, str], int] = {}
+        self.latencies_s: deque[float] = deque(maxlen=LATENCY_HISTORY)
+        self.last_statistics = None
+        self.paused = False
+
+        # Streams: odometry always; the others per subscribe_*; camera_info is attached, not synced.
+        streams = {"odom"}
+        if p.subscribe_scan:
+            streams.add("scan")
+        if p.subscribe_rgb:
+            streams.add("rgb")
+        if p.subscribe_depth:
+            streams.add("depth")
+        self._sync = FrameSynchronizer(self.params.sync, streams)
+        self._sync_lock = threading.Lock()
+        self._reset_jump_ns = int(max(MIN_RESET_JUMP_S, 1.0 / self.params.sync.rate_hz
+                                      if self.params.sync.rate_hz > 0 else 0.0) * NS_PER_S)
+        self._last_stamp: dict[str, int] = {}
+        self._camera = None
+        self._needs_camera = p.subscribe_rgb or p.subscribe_depth
+
+        # Worker: 1-slot mailbox (newest wins) and a queue of commands from the services.
+        self._slot: Optional[tuple[SensorFrame, float]] = None
+        self._commands: list[_Command] = []
+        self._slot_lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._core = None
+        self._worker = threading.Thread(target=self._work, args=(Rtabmap, p.delete_db_on_start),
+                                        name="rtabmap_worker", daemon=True)
+        self._core_ready = threading.Event()
+        self._core_error: Optional[BaseException] = None
+        self._worker.start()
+        self._core_ready.wait()
+        if self._core_error is not None:
+            self._stop.set()
+            super().destroy_node()
+            raise self._core_error
+        self.get_logger().info(f"database {self.database_path} (map {self._core.map_id})")
+
+        self._sensor_group = MutuallyExclusiveCallbackGroup()
+        self._service_group = MutuallyExclusiveCallbackGroup()
+        self._subscribe(p)
+        self._advertise()
+        self._tf = _tf_broadcaster(self)
+
+    # -- subscriptions -------------------------------------------------------------------------
+    def _subscribe(self, p) -> None:
+        qos = (qos_profile_sensor_data if p.qos == "sensor_data"
+               else QoSProfile(depth=QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE))
+        self._topics: dict[str, str] = {}   # stream -> resolved topic name
+        self._last_arrival: dict[str, float] = {}
+        self._silence_warned: set[str] = set()
+        self._start_time = time.monotonic()
+        table: list[tuple[str, str, type, Callable]] = [("odom", "odom", Odometry, conv.odometry_from_msg)]
+        if p.subscribe_scan:
+            table.append(("scan", "scan", LaserScan,
+                          lambda m: conv.scan_from_msg(m, DEFAULT_T_BASE_LASER.copy())))
+        if p.subscribe_rgb:
+            table.append(("rgb", "rgb/image", Image, conv.image_from_msg))
+            table.append(("camera_info", "rgb/camera_info", CameraInfo,
+                          lambda m: conv.camera_model_from_msg(m, DEFAULT_T_BASE_CAMERA.copy())))
+        if p.subscribe_depth:
+            table.append(("depth", "depth/image", Image, conv.depth_from_msg))
+        for stream, topic, msg_type, convert in table:
+            sub = self.create_subscription(
+                msg_type, topic, self._callback(stream, convert), qos, callback_group=self._sensor_group)
+            self._topics[stream] = sub.topic_name
+        self.create_timer(SILENCE_CHECK_PERIOD_S, self._check_silence, callback_group=self._sensor_group)
+
+    def _callback(self, stream: str, convert: Callable) -> Callable:
+        def on_message(msg) -> None:
+            self._on_message(stream, msg, convert)
+        return on_message
+
+    def _on_message(self, stream: str, msg, convert: Callable) -> None:
+        topic = self._topics[stream]
+        arrival = time.monotonic()
+        self._last_arrival[stream] = arrival
+        self._silence_warned.discard(stream)
+        stamp_ns = conv.stamp_to_ns(msg.header.stamp)
+        try:
+            value = convert(msg)
+        except SensorDataError as exc:
+            self._bad(topic, "message", str(exc))
+            return
+        if stream == "camera_info":
+            self._camera = value
+            return
+        last = self._last_stamp.get(stream)
+        if last is not None and stamp_ns <= last and last - stamp_ns < self._reset_jump_ns:
+            self._bad(topic, "stamp", f"timestamp {stamp_ns / NS_PER_S:.9f} s is not after the previous "
+                                      f"{last / NS_PER_S:.9f} s (going backwards or repeated)")
+            return
+        # A larger jump back is a clock reset or a looping bag: the synchroniser starts a new timeline.
+        self._last_stamp[stream] = stamp_ns
+        with self._sync_lock:
+            sets = self._sync.add(stream, stamp_ns, value)
+        for synced in sets:
+            self._submit(synced, arrival)
+
+    def _submit(self, synced: SyncedSet, arrival: float) -> None:
+        """A synchronised set -> SensorFrame -> the worker's 1-slot mailbox (newest wins)."""
+        values = synced.values
+        frame = SensorFrame(stamp_ns=synced.stamp_ns, rgb=values.get("rgb"), depth_m=values.get("depth"),
+                            scan=values.get("scan"))
+        if "odom" in values:
+            frame.T_odom_base, frame.odom_covariance = values["odom"]
+        if self._needs_camera:
+            if self._camera is None:
+                self._bad(self._topics.get("camera_info", "rgb/camera_info"), "missing",
+                          "no camera_info received yet: image frames are dropped until one arrives")
+                return
+            frame.camera = self._camera
+        try:
+            frame.validate()
+        except SensorDataError as exc:
+            self._bad("synchronised set", "frame", str(exc))
+            return
+        if self.paused:
+            return
+        with self._slot_lock:
+            if self._slot is not None:
+                self.frames_dropped += 1
+            self._slot = (frame, arrival)
+        self._wake.set()
+
+    def _bad(self, topic: str, kind: str, reason: str) -> None:
+        """Log a bad input once per (topic, kind); count every occurrence."""
+        key = (topic, kind)
+        count = self.bad_messages.get(key, 0) + 1
+        self.bad_messages[key] = count
+        if count == 1:
+            self.get_logger().warning(f"dropped bad input on {topic}: {reason} "
+                                      "(further ones of this kind are counted, not logged)")
+
+    def _check_silence(self) -> None:
+        """Warn once per silence when an expected topic has been quiet for topic_timeout_s."""
+        timeout = self.params.node.topic_timeout_s
+        now = time.monotonic()
+        if now - self._start_time < timeout:
+            return
+        silent = [s for s in self._topics
+                  if now - self._last_arrival.get(s, self._start_time) >= timeout and s not in self._silence_warned]
+        if not silent:
+            return
+        self._silence_warned.update(silent)
+        arrived = [self._topics[s] for s in self._topics if now - self._last_arrival.get(s, -1e18) < timeout]
+        self.get_logger().warning(
+            f"no message for {timeout:g} s on {', '.join(self._topics[s] for s in silent)}; "
+            f"receiving: {', '.join(arrived) if arrived else 'nothing'}. Check the topic names, remapping "
+            f"and QoS (parameter qos: sensor_data or reliable), or turn the input off (subscribe_*).")
+
+    # -- worker --------------------------------------------------------------------------------
+    def _work(self, rtabmap_cls, delete_existing: bool) -> None:
+        """The worker thread: owns the core from creation to close."""
+        try:
+            self._core = rtabmap_cls(self.params, self.database_path, delete_existing=delete_existing)
+        except BaseException as exc:  # noqa: BLE001 - handed to __init__, which raises it
+            self._core_error = exc
+            return
+        finally:
+            self._core_ready.set()
+        try:
+            while True:
+                self._wake.wait(WORKER_POLL_S)
+                with self._slot_lock:
+                    item, self._slot = self._slot, None
+                    commands, self._commands = self._commands, []
+                    self._wake.clear()
+                for command in commands:
+                    command.run()
+                if item is not None and not self._stop.is_set():
+                    self._process(*item)
+                if self._stop.is_set():
+                    with self._slot_lock:
+                        if not self._commands:
+                            break
+        finally:
+            self._core.close()
+
+    def _in_worker(self, fn: Callable[[], Any]) -> Any:
+        """Run ``fn`` (a core call) in the worker thread and return its result or raise its error."""
+        command = _Command(fn)
+        with self._slot_lock:
+            if self._stop.is_set() or not self._worker.is_alive():
+                raise RtabmapError("the rtabmap worker has stopped (node shutting down)")
+            self._commands.append(command)
+        self._wake.set()
+        return command.result()
+
+    def _process(self, frame: SensorFrame, arrival: float) -> None:
+        try:
+            stats = self._core.process(frame)
+            local = self._core.local_map()
+            grid = self._core.local_grid() if frame.scan is not None else None
+            localization_pose = getattr(self._core, "localization_pose", None)
+            localization = self._core.localization_mode
+        except SensorDataError as exc:
+            self._bad("synchronised set", "rejected by the core", str(exc))
+            return
+        except RtabmapError as exc:
+            self.get_logger().error(f"frame at {frame.stamp_ns / NS_PER_S:.9f} s not processed: {exc}")
+            return
+        self.frames_processed += 1
+        self.last_statistics = stats
+        stamp = frame.stamp_ns
+        map_frame = self.params.node.map_frame_id
+        self._pub_path.publish(conv.path_to_msg(local.poses, stamp, map_frame))
+        latency = time.monotonic() - arrival
+        self.latencies_s.append(latency)
+        if grid is not None:
+            self._pub_map.publish(conv.grid_to_msg(grid, stamp, map_frame))
+        self._pub_graph.publish(conv.graph_to_markers(local.poses, local.links, stamp, map_frame))
+        extra = {"node_latency_ms": round(latency * 1e3, 3), "node_frames_dropped": self.frames_dropped,
+                 "node_paused": self.paused}
+        self._pub_info.publish(conv.statistics_to_msg({**stats.to_dict(), **extra}, stamp, map_frame))
+        self._tf.sendTransform(conv.transform_to_msg(local.T_map_odom, stamp, map_frame,
+                                                     self.params.node.odom_frame_id))
+        if localization and localization_pose is not None:
+            self._pub_localization.publish(
+                PoseStamped(header=conv.header(stamp, map_frame), pose=conv.pose_to_msg(localization_pose)))
+
+    # -- publishers and services ---------------------------------------------------------------
+    def _advertise(self) -> None:
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._pub_path = self.create_publisher(PathMsg, "mapPath", QUEUE_DEPTH)
+        self._pub_map = self.create_publisher(OccupancyGridMsg, "map", latched)
+        self._pub_graph = self.create_publisher(MarkerArray, "mapGraph", QUEUE_DEPTH)
+        self._pub_info = self.create_publisher(DiagnosticArray, "info", QUEUE_DEPTH)
+        self._pub_localization = self.create_publisher(PoseStamped, "localization_pose", QUEUE_DEPTH)
+        group = self._service_group
+        self.create_service(GetMap, "get_map", self._get_map, callback_group=group)
+        self.create_service(Trigger, "export_global_map", self._export_global_map, callback_group=group)
+        empty_services: dict[str, Callable[[], None]] = {
+            "publish_map": self.publish_global_map,
+            "reset": self.reset,
+            "pause": lambda: self._set_paused(True),
+            "resume": lambda: self._set_paused(False),
+            "trigger_new_map": self.trigger_new_map,
+            "backup": self.backup,
+            "set_mode_localization": lambda: self._set_localization(True),
+            "set_mode_mapping": lambda: self._set_localization(False),
+        }
+        for name, action in empty_services.items():
+            self.create_service(Empty, name, self._empty_service(name, action), callback_group=group)
+
+    def _empty_service(self, name: str, action: Callable[[], None]) -> Callable:
+        def serve(request, response):
+            try:
+                action()
+            except (RtabmapError, OSError, ImportError) as exc:
+                self.get_logger().error(f"service {name} failed: {exc}")
+            return response
+        return serve
+
+    def _set_paused(self, paused: bool) -> None:
+        self.paused = paused
+        self.get_logger().info("paused: incoming frames are ignored" if paused else "resumed")
+
+    def _set_localization(self, on: bool) -> None:
+        self._in_worker(lambda: setattr(self._core, "localization_mode", on))
+        self.get_logger().info("localization mode: no node is added to the map" if on else "mapping mode")
+
+    def trigger_new_map(self) -> int:
+        """Start a new map (session) at the next frame; returns its id."""
+        map_id = self._in_worker(lambda: self._core.trigger_new_map())
+        self.get_logger().info(f"new map {map_id} starts at the next frame")
+        return map_id
+
+    def reset(self) -> None:
+        """Forget everything (database deleted and restarted) and clear the published map."""
+        with self._slot_lock:
+            self._slot = None
+        self._in_worker(lambda: self._core.reset())
+        with self._sync_lock:
+            self._sync.reset()
+        self._last_stamp.clear()
+        stamp = self.get_clock().now().nanoseconds
+        map_frame = self.params.node.map_frame_id
+        self._pub_path.publish(conv.path_to_msg({}, stamp, map_frame))
+        self._pub_graph.publish(conv.graph_to_markers({}, [], stamp, map_frame))
+        self.get_logger().info(f"reset: {self.database_path} emptied")
+
+    def backup(self) -> Path:
+        """Copy the database next to itself as ``<stem>-backup-<YYYYmmdd-HHMMSS>.db``."""
+        stamp = datetime.now().strftime(EXPORT_STAMP_FORMAT)
+        path = self.database_path.with_name(f"{self.database_path.stem}-backup-{stamp}.db")
+        self._in_worker(lambda: self._core.backup(path))
+        self.get_logger().info(f"database backed up to {path}")
+        return path
+
+    def _global_map(self):
+        """The global map of the whole database (all sessions, all constraints), after a flush."""
+        from rtabmap_ros2.core.global_map import load_global_map
+
+        self._in_worker(lambda: self._core.flush())
+        return load_global_map(self.database_path, self.params)
+
+    def publish_global_map(self) -> None:
+        """Publish the global map on mapPath, mapGraph and (with scans) map."""
+        global_map = self._global_map()
+        stamp = self.get_clock().now().nanoseconds
+        map_frame = self.params.node.map_frame_id
+        self._pub_path.publish(conv.path_to_msg(global_map.poses, stamp, map_frame))
+        self._pub_graph.publish(conv.graph_to_markers(global_map.poses, global_map.links, stamp, map_frame))
+        if global_map.grid is not None:
+            self._pub_map.publish(conv.grid_to_msg(global_map.grid, stamp, map_frame))
+        self.get_logger().info(f"published the global map ({len(global_map.poses)} nodes)")
+
+    def _get_map(self, request, response):
+        try:
+            global_map = self._global_map()
+        except (RtabmapError, OSError, ImportError) as exc:
+            self.get_logger().error(f"get_map failed: {exc}")
+            return response
+        if global_map.grid is None:
+            self.get_logger().warning("get_map: the map has no laser scans, so no occupancy grid")
+            return response
+        response.map = conv.grid_to_msg(global_map.grid, self.get_clock().now().nanoseconds,
+                                        self.params.node.map_frame_id)
+        return response
+
+    def _export_global_map(self, request, response):
+        try:
+            from rtabmap_ros2.io.export import export_global_map
+
+            folder = new_export_folder(self.params.node.export_dir)
+            self._in_worker(lambda: self._core.flush())
+            summary = export_global_map(self.database_path, folder, self.params)
+        except (RtabmapError, OSError, ImportError) as exc:
+            response.success, response.message = False, f"export failed: {exc}"
+            self.get_logger().error(response.message)
+            return response
+        response.success = True
+        response.message = str(folder)
+        self.get_logger().info(f"global map exported to {folder}: {summary}")
+        return response
+
+    # -- shutdown ------------------------------------------------------------------------------
+    def destroy_node(self) -> None:
+        """Finish the frame in flight, flush and close the database, then destroy the node."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._wake.set()
+        self._worker.join()   # finishes the frame in flight, then flushes and closes the database
+        self.get_logger().info(f"database {self.database_path} flushed and closed "
+                               f"({self.frames_processed} frames processed, {self.frames_dropped} dropped)")
+        super().destroy_node()
+
+
+def main(args: Optional[list[str]] = None) -> None:
+    """Console script ``rtabmap`` (``ros2 run rtabmap_ros2 rtabmap``)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = RtabmapNode()
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        executor.spin()
+    except KeyboardInterrupt:
+        pass
+    except ExternalShutdownException:
+        sys.exit(1)
+    except RtabmapError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,400 @@
+"""The ``rtabmap`` node with real rclpy (Fast DDS): in one process, and as a subprocess.
+
+A small simulated session (``rtabmap_ros2.sim``) is converted to messages and published frame by
+frame; each frame waits for its ``info`` so the tests are deterministic (no timing assertions).
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import OccupancyGrid, Odometry  # noqa: E402
+from nav_msgs.msg import Path as PathMsg  # noqa: E402
+from nav_msgs.srv import GetMap  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, LaserScan  # noqa: E402
+from std_srvs.srv import Empty, Trigger  # noqa: E402
+from visualization_msgs.msg import MarkerArray  # noqa: E402
+
+from rtabmap_ros2.errors import RtabmapError  # noqa: E402
+from rtabmap_ros2.ros import conversions as conv  # noqa: E402
+from rtabmap_ros2.ros.node import RtabmapNode, checked_export_path, new_export_folder  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+DOMAIN_ID = random.randint(1, 99)
+N_FRAMES = 14
+TIMEOUT_S = 30.0
+RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _ros_env() -> dict[str, str]:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    return env
+
+
+@pytest.fixture(scope="module")
+def context():
+    os.environ.update(_ros_env())
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """The first frames of the small simulation's two sessions (RGB-D, scan, odometry)."""
+    sim = pytest.importorskip("rtabmap_ros2.sim")
+    world = sim.build_world(seed=0)
+    sessions = sim.make_sessions(world, small=True, sessions=1)
+    return [sim.render_frame(world, sessions[0], i) for i in range(N_FRAMES)]
+
+
+class SensorRig(Node):
+    """Publishes sensor messages to the node under test and records what it publishes."""
+
+    def __init__(self, context):
+        super().__init__("rtabmap_tester", context=context)
+        self.pubs = {
+            "odom": self.create_publisher(Odometry, "odom", RELIABLE),
+            "scan": self.create_publisher(LaserScan, "scan", RELIABLE),
+            "rgb": self.create_publisher(Image, "rgb/image", RELIABLE),
+            "depth": self.create_publisher(Image, "depth/image", RELIABLE),
+            "camera_info": self.create_publisher(CameraInfo, "rgb/camera_info", RELIABLE),
+        }
+        self.received: dict[str, list] = {"mapPath": [], "map": [], "mapGraph": [], "info": []}
+        self.lock = threading.Lock()
+        for topic, msg_type, qos in (("mapPath", PathMsg, 10), ("map", OccupancyGrid, LATCHED),
+                                     ("mapGraph", MarkerArray, 10), ("info", DiagnosticArray, 10)):
+            self.create_subscription(msg_type, topic, self._recorder(topic), qos)
+        self.clients_ = {}
+
+    def _recorder(self, topic):
+        def record(msg):
+            with self.lock:
+                self.received[topic].append(msg)
+        return record
+
+    def count(self, topic: str) -> int:
+        with self.lock:
+            return len(self.received[topic])
+
+    def last(self, topic: str):
+        with self.lock:
+            return self.received[topic][-1]
+
+    def infos(self) -> list[dict[str, str]]:
+        with self.lock:
+            return [conv.statistics_from_msg(m) for m in self.received["info"]]
+
+    def publish_frame(self, frame, stamp_ns=None, skip=()):
+        stamp = frame.stamp_ns if stamp_ns is None else stamp_ns
+        msgs = {
+            "camera_info": conv.camera_info_to_msg(frame.camera, stamp, "camera_optical"),
+            "odom": conv.odometry_to_msg(frame.T_odom_base, stamp, covariance=frame.odom_covariance),
+            "scan": conv.scan_to_msg(frame.scan, stamp, "laser"),
+            "depth": conv.depth_to_msg(frame.depth_m, stamp, "camera_optical"),
+            "rgb": conv.image_to_msg(frame.rgb, stamp, "camera_optical", "bgr8"),
+        }
+        for name, msg in msgs.items():
+            if name not in skip:
+                self.pubs[name].publish(msg)
+
+    def call(self, name: str, srv_type=Empty, timeout: float = TIMEOUT_S):
+        client = self.clients_.get(name)
+        if client is None:
+            client = self.clients_[name] = self.create_client(srv_type, name)
+        assert client.wait_for_service(timeout_sec=timeout), f"service {name} not available"
+        future = client.call_async(srv_type.Request())
+        assert wait_for(future.done, timeout), f"service {name} did not answer"
+        return future.result()
+
+
+def wait_for(condition, timeout: float = TIMEOUT_S) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return bool(condition())
+
+
+class Harness:
+    def __init__(self, context, tmp_path: Path, **overrides):
+        params = {"database_path": str(tmp_path / "rtabmap.db"), "export_dir": str(tmp_path / "exports"),
+                  "qos": "reliable", **overrides}
+        self.node = RtabmapNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+        self.tester = SensorRig(context)
+        self.executor = MultiThreadedExecutor(num_threads=4, context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.tester)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in self.tester.pubs.values()))
+
+    def feed(self, frame, stamp_ns=None) -> dict[str, str]:
+        """Publish one frame and wait until the node reports it on info."""
+        before = self.tester.count("info")
+        self.tester.publish_frame(frame, stamp_ns)
+        assert wait_for(lambda: self.tester.count("info") > before), "no info for a published frame"
+        return self.tester.infos()[-1]
+
+    def close(self):
+        self.executor.shutdown()
+        self.thread.join(timeout=10)
+        self.node.destroy_node()
+        self.tester.destroy_node()
+
+
+@pytest.fixture
+def harness(context, tmp_path):
+    h = Harness(context, tmp_path)
+    yield h
+    h.close()
+
+
+# -- parameters and export paths (no messages) ---------------------------------------------------
+def test_parameters_are_declared_with_descriptions(harness):
+    node = harness.node
+    for name in ("database_path", "frame_id", "map_frame_id", "odom_frame_id", "detection_rate", "approx_sync",
+                 "sync_queue_size", "export_dir", "delete_db_on_start", "memory.stm_size", "bayes.loop_threshold"):
+        assert node.has_parameter(name), name
+    assert not node.has_parameter("sync.rate_hz")   # declared once, as detection_rate
+    assert node.get_parameter("detection_rate").value == 1.0
+    assert "Short-Term Memory" in node.describe_parameter("memory.stm_size").description
+    assert "[Hz]" in node.describe_parameter("detection_rate").description
+
+
+def test_parameter_overrides_reach_the_core(context, tmp_path):
+    node = RtabmapNode(context=context, parameter_overrides=[
+        Parameter("database_path", value=str(tmp_path / "o.db")), Parameter("memory.stm_size", value=7),
+        Parameter("detection_rate", value=2), Parameter("subscribe_scan", value=False)])
+    try:
+        assert node.params.memory.stm_size == 7 and node.params.sync.rate_hz == 2.0
+        assert "scan" not in node._topics and node._sync.streams == {"odom", "rgb", "depth"}
+    finally:
+        node.destroy_node()
+
+
+def test_export_folders_are_new_and_stay_inside(tmp_path):
+    from datetime import datetime
+
+    now = datetime(2026, 11, 3, 14, 5, 9)
+    a = new_export_folder(tmp_path, now)
+    b = new_export_folder(tmp_path, now)
+    assert a.name == "20261103-140509" and b.name == "20261103-140509-1" and a.is_dir() and b.is_dir()
+    with pytest.raises(RtabmapError, match="outside"):
+        checked_export_path(tmp_path, "../elsewhere")
+    (tmp_path / "20261103-140509-2").symlink_to(tmp_path.parent)
+    assert new_export_folder(tmp_path, now).name == "20261103-140509-3"   # the symlink is not reused
+    with pytest.raises(RtabmapError, match="outside"):
+        checked_export_path(tmp_path, "20261103-140509-2/x")
+
+
+# -- mapping ---------------------------------------------------------------------------------------
+def test_mapping_publishes_path_map_graph_info(harness, frames):
+    infos = [harness.feed(f) for f in frames]
+    assert [int(i["location_id"]) > 0 for i in infos] == [True] * len(frames)
+    assert all(float(i["node_latency_ms"]) >= 0 for i in infos)
+    t = harness.tester
+    assert wait_for(lambda: t.count("mapPath") >= len(frames) and t.count("mapGraph") >= len(frames))
+    path = t.last("mapPath")
+    assert path.header.frame_id == "map" and len(path.poses) == int(infos[-1]["local_map_size"]) >= 2
+    # No loop closure in these first frames: the newest pose is the odometry pose (map = odom).
+    newest = conv.pose_from_msg(path.poses[-1].pose)
+    np.testing.assert_allclose(newest[:2, 3], frames[-1].T_odom_base[:2, 3], atol=0.05)
+    graph = {m.ns: m for m in t.last("mapGraph").markers}
+    assert len(graph["nodes"].points) == len(path.poses)
+    assert len(graph["neighbor_links"].points) == 2 * (len(path.poses) - 1)
+    assert wait_for(lambda: t.count("map") > 0)
+    grid, resolution, _ = conv.grid_from_msg(t.last("map"))
+    assert resolution == pytest.approx(0.05)
+    assert (grid == 100).any() and (grid == 0).any() and (grid == -1).any()
+    assert harness.node.frames_dropped == 0 and not harness.node.bad_messages
+
+
+def test_map_is_latched_for_late_subscribers(harness, frames, context):
+    for f in frames[:3]:
+        harness.feed(f)
+    late = Node("late_subscriber", context=context)
+    got = []
+    late.create_subscription(OccupancyGrid, "map", got.append, LATCHED)
+    harness.executor.add_node(late)
+    try:
+        assert wait_for(lambda: len(got) == 1)
+    finally:
+        harness.executor.remove_node(late)
+        late.destroy_node()
+
+
+def test_pause_resume_trigger_new_map_and_reset(harness, frames):
+    t, node = harness.tester, harness.node
+    first = [harness.feed(f) for f in frames[:4]]
+    t.call("pause")
+    processed = node.frames_processed
+    for f in frames[4:6]:
+        t.publish_frame(f)
+    time.sleep(1.0)   # give the paused node the chance to (wrongly) process them
+    assert node.frames_processed == processed and t.count("info") == len(first)
+    t.call("resume")
+    resumed = harness.feed(frames[6])
+    assert int(resumed["location_id"]) > int(first[-1]["location_id"])
+
+    t.call("trigger_new_map")
+    new_map = harness.feed(frames[7])
+    assert int(new_map["map_id"]) == int(resumed["map_id"]) + 1
+
+    t.call("reset")
+    assert wait_for(lambda: len(t.last("mapPath").poses) == 0)   # the reset map is published empty
+    after = harness.feed(frames[8])
+    assert int(after["location_id"]) == 1 and int(after["map_id"]) == 0
+    assert len(t.last("mapPath").poses) == 1
+
+
+def test_localization_mode_adds_no_node(harness, frames):
+    t = harness.tester
+    for f in frames[:5]:
+        harness.feed(f)
+    t.call("set_mode_localization")
+    nodes_before = len(t.last("mapPath").poses)
+    info = harness.feed(frames[5])
+    assert int(info["location_id"]) == 0
+    assert len(t.last("mapPath").poses) == nodes_before
+    t.call("set_mode_mapping")
+    assert int(harness.feed(frames[6])["location_id"]) > 0
+
+
+def test_backup_service_copies_the_database(harness, frames, tmp_path):
+    for f in frames[:3]:
+        harness.feed(f)
+    harness.tester.call("backup")
+    backups = list(tmp_path.glob("rtabmap-backup-*.db"))
+    assert len(backups) == 1 and backups[0].stat().st_size > 0
+    from rtabmap_ros2.core.database import Database
+
+    db = Database(backups[0], read_only=True)
+    try:
+        assert len(db.load_nodes()) >= 1
+    finally:
+        db.close()
+
+
+def test_global_map_services(harness, frames, tmp_path):
+    pytest.importorskip("rtabmap_ros2.core.global_map")
+    pytest.importorskip("rtabmap_ros2.io.export")
+    t = harness.tester
+    for f in frames[:6]:
+        harness.feed(f)
+    response = t.call("export_global_map", Trigger)
+    assert response.success, response.message
+    folder = Path(response.message)
+    assert folder.parent == (tmp_path / "exports").resolve()
+    assert (folder / "poses.txt").is_file() and (folder / "graph.g2o").is_file()
+    second = t.call("export_global_map", Trigger)
+    assert second.success and Path(second.message) != folder   # a new folder per call
+    grid = t.call("get_map", GetMap).map
+    assert grid.info.width > 0 and grid.header.frame_id == "map"
+    paths_before = t.count("mapPath")
+    t.call("publish_map")
+    assert wait_for(lambda: t.count("mapPath") > paths_before)
+    assert len(t.last("mapPath").poses) >= len(frames[:6]) // 2
+
+
+def test_bad_messages_are_dropped_and_the_node_keeps_running(harness, frames):
+    t, node = harness.tester, harness.node
+    harness.feed(frames[0])
+    f = frames[1]
+    stamp = f.stamp_ns
+    bad_rgb = conv.image_to_msg(f.rgb, stamp, "c")
+    bad_rgb.encoding = "yuv422"
+    t.pubs["rgb"].publish(bad_rgb)
+    t.pubs["depth"].publish(conv.depth_to_msg(np.full_like(f.depth_m, np.inf), stamp, "c", "32FC1"))
+    empty_scan = conv.scan_to_msg(f.scan, stamp, "laser")
+    empty_scan.ranges = []
+    t.pubs["scan"].publish(empty_scan)
+    nan_odom = conv.odometry_to_msg(f.T_odom_base, stamp)
+    nan_odom.pose.pose.position.x = float("nan")
+    t.pubs["odom"].publish(nan_odom)
+    t.pubs["odom"].publish(conv.odometry_to_msg(f.T_odom_base, frames[0].stamp_ns - 500_000_000))  # backwards
+    small_depth = conv.depth_to_msg(f.depth_m[::2, ::2], frames[2].stamp_ns, "c")   # size mismatch
+    t.publish_frame(frames[2], skip=("depth",))
+    t.pubs["depth"].publish(small_depth)
+    expected = {"/rgb/image", "/depth/image", "/scan", "/odom", "synchronised set"}
+    assert wait_for(lambda: {topic for topic, _ in node.bad_messages} >= expected), node.bad_messages
+    assert node.bad_messages[("/odom", "stamp")] == 1
+    assert node.frames_processed == 1
+    info = harness.feed(frames[3])   # still alive
+    assert int(info["location_id"]) > 0
+
+
+def test_silent_topics_are_reported_once(context, tmp_path, frames, capfd):
+    h = Harness(context, tmp_path, topic_timeout_s=1.0)
+    try:
+        deadline = time.monotonic() + 3.5
+        while time.monotonic() < deadline:   # only odometry arrives
+            h.tester.pubs["odom"].publish(conv.odometry_to_msg(np.eye(4), time.time_ns()))
+            time.sleep(0.1)
+        assert h.node._silence_warned == {"scan", "rgb", "depth", "camera_info"}
+    finally:
+        h.close()
+    err = capfd.readouterr().err
+    warnings = [line for line in err.splitlines() if "no message for" in line]
+    assert len(warnings) == 1, err
+    assert "/scan" in warnings[0] and "receiving: /odom" in warnings[0]
+
+
+# -- across processes ------------------------------------------------------------------------------
+def test_node_subprocess_sigterm_flushes_database(context, tmp_path, frames):
+    db_path = tmp_path / "proc.db"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rtabmap_ros2.ros.node", "--ros-args", "-p", f"database_path:={db_path}",
+         "-p", "qos:=reliable", "-p", f"export_dir:={tmp_path / 'exports'}"],
+        env=_ros_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    tester = SensorRig(context)
+    executor = MultiThreadedExecutor(num_threads=2, context=context)
+    executor.add_node(tester)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in tester.pubs.values()), 60)
+        for i, f in enumerate(frames[:5]):
+            tester.publish_frame(f)
+            assert wait_for(lambda: tester.count("info") > i), "subprocess node did not report a frame"
+        last_id = int(tester.infos()[-1]["location_id"])
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        executor.shutdown()
+        thread.join(timeout=10)
+        tester.destroy_node()
+    assert proc.returncode == 0, out
+    assert "flushed and closed" in out
+    from rtabmap_ros2.core.database import Database
+
+    db = Database(db_path, read_only=True)
+    try:
+        nodes = db.load_nodes()
+    finally:
+        db.close()
+    assert last_id in nodes and len(nodes) >= 2
