@@ -8,7 +8,9 @@ Usage: ``python bench/bench_optimizers.py [--quick]``. Prints a table and writes
 2. Robustness (2014 §II-B with DCS): manhattan + 50 false loop closures between random node pairs
    (identity transform, the information of the median true loop closure). Final ATE (RMS position
    difference) against the clean graph's solution, without a kernel and with DCS; how many false
-   loop closures the robust mode rejects, and how many true ones it also rejects.
+   loop closures the robust mode rejects, and how many true ones it also rejects, for DCS phi in
+   1, 10, 100, 1000 (--quick: the default phi only); also the true loop closures rejected on the
+   clean graph.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rtabmap_ros2.core.graph import Link, LinkType
+from rtabmap_ros2.core import optimizer as optimizer_module
 from rtabmap_ros2.core.optimizer import optimize, read_g2o
 from rtabmap_ros2.core.params import GraphParams
 from rtabmap_ros2.errors import OptimizationError
@@ -34,6 +37,7 @@ GRAPHS = ["intel", "MIT", "manhattan", "city10000", "parking-garage", "sphere250
 QUICK_GRAPHS = ["intel", "MIT", "manhattan", "sphere2500"]
 OPTIMIZERS = ["lm", "gn", "dogleg"]
 FALSE_LOOPS = 50
+PHI_SWEEP = [1.0, 10.0, 100.0, 1000.0]
 SEED = 7
 
 
@@ -70,7 +74,7 @@ def _fmt(row: dict) -> str:
             f"{row['time_s']:>8.3f}")
 
 
-def robustness(repeats: int) -> dict:
+def robustness(repeats: int, phis: list[float]) -> dict:
     poses, links, planar = read_g2o(DATA / "manhattan.g2o")
     root = min(poses)
     rng = np.random.default_rng(SEED)
@@ -82,21 +86,33 @@ def robustness(repeats: int) -> dict:
         a, b = rng.choice(ids, 2, replace=False)
         if abs(int(a) - int(b)) > 1:
             false_links.append(Link(int(a), int(b), LinkType.LOOP_INTRA, np.eye(4), info))
-    clean = optimize(poses, links, root, GraphParams(robust=False), planar).poses
-    clean_robust = optimize(poses, links, root, GraphParams(robust=True), planar)
-    out = {"graph": "manhattan", "false_loop_closures": FALSE_LOOPS,
-           "clean_robust_rejected_true": len(clean_robust.rejected),
-           "clean_robust_ate_m": _ate(clean, clean_robust.poses)}
     false_keys = {l.key() for l in false_links}
-    for label, robust in (("no_kernel", False), ("dcs", True)):
-        times = []
-        for _ in range(repeats):
-            res = optimize(poses, links + false_links, root, GraphParams(robust=robust), planar)
-            times.append(res.time_s)
-        rejected_false = sum(1 for l in res.rejected if l.key() in false_keys)
-        out[label] = {"ate_vs_clean_m": _ate(clean, res.poses), "chi2_final": res.chi2_final,
-                      "rejected_false": rejected_false, "rejected_true": len(res.rejected) - rejected_false,
-                      "time_s": statistics.median(times)}
+    clean = optimize(poses, links, root, GraphParams(robust=False), planar).poses
+    out = {"graph": "manhattan", "false_loop_closures": FALSE_LOOPS, "default_phi": optimizer_module.DCS_PHI}
+    times = []
+    for _ in range(repeats):
+        res = optimize(poses, links + false_links, root, GraphParams(robust=False), planar)
+        times.append(res.time_s)
+    out["no_kernel"] = {"ate_vs_clean_m": _ate(clean, res.poses), "chi2_final": res.chi2_final,
+                        "rejected_false": 0, "rejected_true": 0, "time_s": statistics.median(times)}
+    default_phi = optimizer_module.DCS_PHI
+    out["dcs"] = {}
+    try:
+        for phi in phis:
+            optimizer_module.DCS_PHI = phi
+            on_clean = optimize(poses, links, root, GraphParams(robust=True), planar)
+            times = []
+            for _ in range(repeats):
+                res = optimize(poses, links + false_links, root, GraphParams(robust=True), planar)
+                times.append(res.time_s)
+            rejected_false = sum(1 for l in res.rejected if l.key() in false_keys)
+            out["dcs"][str(phi)] = {
+                "ate_vs_clean_m": _ate(clean, res.poses), "chi2_final": res.chi2_final,
+                "rejected_false": rejected_false, "rejected_true": len(res.rejected) - rejected_false,
+                "time_s": statistics.median(times), "clean_graph_rejected_true": len(on_clean.rejected),
+                "clean_graph_ate_m": _ate(clean, on_clean.poses)}
+    finally:
+        optimizer_module.DCS_PHI = default_phi
     return out
 
 
@@ -120,14 +136,15 @@ def main(argv: list[str] | None = None) -> int:
     for name in QUICK_GRAPHS if args.quick else GRAPHS:
         if (DATA / f"{name}.g2o").exists():
             rows.extend(run_graph(name, repeats, args.iterations))
-    robust = robustness(repeats)
-    print("\nRobustness: manhattan + %d false loop closures (ATE vs clean solution)" % FALSE_LOOPS)
-    print(f"  clean graph with DCS: {robust['clean_robust_rejected_true']} true loop closures rejected, "
-          f"ATE {robust['clean_robust_ate_m']:.4f} m")
-    for label in ("no_kernel", "dcs"):
-        r = robust[label]
-        print(f"  {label:<10} ATE {r['ate_vs_clean_m']:.4f} m  rejected false {r['rejected_false']}/"
-              f"{FALSE_LOOPS}  rejected true {r['rejected_true']}  time {r['time_s']:.2f} s")
+    robust = robustness(repeats, [optimizer_module.DCS_PHI] if args.quick else PHI_SWEEP)
+    print(f"\nRobustness: manhattan + {FALSE_LOOPS} false loop closures; ATE vs the clean solution; "
+          f"default DCS phi = {robust['default_phi']:g}")
+    r = robust["no_kernel"]
+    print(f"  no kernel      ATE {r['ate_vs_clean_m']:8.4f} m  time {r['time_s']:.2f} s")
+    for phi, r in robust["dcs"].items():
+        print(f"  DCS phi {float(phi):<6g} ATE {r['ate_vs_clean_m']:8.4f} m  rejected false {r['rejected_false']}/"
+              f"{FALSE_LOOPS}  rejected true {r['rejected_true']}  time {r['time_s']:.2f} s  | clean graph: "
+              f"{r['clean_graph_rejected_true']} rejected, ATE {r['clean_graph_ate_m']:.4f} m")
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps({"graphs": rows, "robustness": robust, "quick": args.quick,
                                    "iterations": args.iterations}, indent=2))
