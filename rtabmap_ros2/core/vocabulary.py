@@ -13,7 +13,10 @@ step. Here the index is incremental (``bench/bench_vocabulary.py`` measured the 
   word ids natively, with a hash-table direct map so ``remove_ids`` costs O(removed). Used from
   ``ivf_min_words`` words on (``index=auto``). Its coarse quantiser is trained on the current words
   and retrained only when the vocabulary has grown by ``ivf_retrain_growth`` since the last
-  training; between trainings words are added to / removed from the lists incrementally.
+  training; between trainings words are added to / removed from the lists incrementally. Once
+  built, the IVF stays in use even if removals shrink the vocabulary below ``ivf_min_words``.
+  Training runs in the frame that crosses the threshold and blocks it (about 0.5 s at 20 k words,
+  a few seconds at 200 k with 2 sqrt(n) lists; see ``IVF_LISTS_PER_SQRT``).
 
 Distances: Hamming (bits) for binary descriptors, Euclidean for float ones (faiss returns squared
 L2: the square root is taken before the ratio test).
