@@ -27,8 +27,8 @@ _EPSILON = 1e-9
 class Hypothesis:
     """The highest loop closure hypothesis of a frame."""
 
-    location_id: int  # 0 when there is none
-    probability: float
+    location_id: int  # the most probable location, 0 when there is none
+    probability: float  # 1 - p(S_t = -1): the value compared with T_loop
     new_location_probability: float
 
 
@@ -159,13 +159,20 @@ class BayesFilter:
         return self.posterior
 
     def highest(self) -> Hypothesis:
-        """Hypothesis selection (§III-D): the most probable loop closure state."""
+        """Hypothesis selection (§III-D): the most probable location, valued 1 - p(S_t = -1).
+
+        The paper accepts the highest hypothesis when the new-location probability is below
+        T_loop's complement; as in RTAB-Map, the value compared with T_loop is the total
+        loop closure probability ``1 - p(S_t = -1)``.
+        """
         best_id, best_p = 0, 0.0
         for loc, prob in self.posterior.items():
             if loc != NEW_LOCATION and prob > best_p:
                 best_id, best_p = loc, prob
-        return Hypothesis(best_id, best_p, self.posterior.get(NEW_LOCATION, 0.0))
+        p_new = self.posterior.get(NEW_LOCATION, 1.0)
+        return Hypothesis(best_id, 1.0 - p_new if best_id else 0.0, p_new)
 
     def accepted(self, hypothesis: Hypothesis) -> bool:
-        """A hypothesis is a loop closure when its posterior reaches T_loop."""
-        return hypothesis.location_id > 0 and hypothesis.probability >= self.params.loop_threshold
+        """A loop closure when the hypothesis reaches T_loop and is not the only one in WM."""
+        return (hypothesis.location_id > 0 and len(self.posterior) > 2
+                and hypothesis.probability >= self.params.loop_threshold)
