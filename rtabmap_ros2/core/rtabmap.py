@@ -27,7 +27,7 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
-from rtabmap_ros2.core.database import Database, SensorBlobs, encode_depth, encode_rgb
+from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
 from rtabmap_ros2.core.graph import Graph, Link, LinkType, chain_poses, default_information, loop_type
 from rtabmap_ros2.core.memory import Memory
@@ -307,8 +307,7 @@ class Rtabmap:
         sig = Signature(id=node_id, map_id=memory.map_id, stamp_ns=frame.stamp_ns, word_ids=word_ids,
                         keypoints=features.keypoints, points3d=points3d, T_odom_base=frame.T_odom_base,
                         scan=frame.scan, camera=frame.camera, bad=bad)
-        blobs = SensorBlobs(encode_rgb(frame.rgb) if frame.rgb is not None else None,
-                            encode_depth(frame.depth_m) if frame.depth_m is not None else None)
+        blobs = SensorBlobs.encode(frame.rgb, frame.depth_m, frame.odom_covariance)
         watch.lap("database")
         # Alg. 1 line 7: insert into STM with a neighbour link to the previous location.
         previous = memory.last_location()
