@@ -17,10 +17,16 @@ from rtabmap_ros2.errors import RtabmapError
 
 # Subcommand modules, in the order ``--help`` lists them.
 SUBCOMMANDS = [
-    "carmen2bag",
-    "optimize",
-    "play",
+    "demo",
+    "detect",
+    "map",
+    "export",
+    "report",
     "simulate",
+    "play",
+    "optimize",
+    "carmen2bag",
+    "params",
 ]
 
 
@@ -33,7 +39,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in SUBCOMMANDS:
-        importlib.import_module(f"rtabmap_ros2.io.cmd_{name}").add_parser(subparsers)
+        try:
+            module = importlib.import_module(f"rtabmap_ros2.io.cmd_{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"rtabmap_ros2.io.cmd_{name}":
+                raise
+            continue  # a subcommand not written yet
+        module.add_parser(subparsers)
     return parser
 
 
