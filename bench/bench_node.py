@@ -7,8 +7,9 @@
    run: the naive ``np.array(list(msg.data))`` read LIBRARIES.md warns against.
 2. Latency from the last message of a synchronised set to ``mapPath`` at the node's detection rate
    (1 Hz), with a simulated session written to a bag and played in real time by ``play`` in a
-   subprocess; frames dropped by the node's 1-slot worker queue (target 0). Needs the core
-   (``core/rtabmap.py``) and the simulator; skipped with a message otherwise.
+   subprocess; frames dropped by the node's 1-slot worker queue (target 0), once with the default
+   ``qos:=sensor_data`` (best effort) and once with ``qos:=reliable``. Needs the core and the
+   simulator; skipped with a message otherwise.
 
 Prints a table and writes ``bench/results/node.json``.
 """
@@ -59,12 +60,69 @@ def bench_conversion(repeats: int) -> dict[str, dict[str, float]]:
     return out
 
 
-def bench_latency(quick: bool) -> dict | None:
+def bench_latency(quick: bool, qos: str) -> dict | None:
+    """Node in this process, a simulated session played in real time by ``play`` in a subprocess."""
+    import os
+    import random
+    import subprocess
+    import tempfile
+    import threading
+
     try:
-        from bench_node_latency import run_latency  # noqa: F401 - optional, written once the core exists
-    except ImportError:
+        import rclpy
+        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.parameter import Parameter
+
+        from rtabmap_ros2 import sim
+        from rtabmap_ros2.io.bag import write_bag
+        from rtabmap_ros2.ros.node import RtabmapNode
+    except ImportError as exc:
+        print(f"latency: skipped ({exc})")
         return None
-    return run_latency(quick)
+
+    n_frames = 15 if quick else None
+    domain = random.randint(150, 230)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    os.environ.update(env)
+    world = sim.build_world(seed=0)
+    session = sim.make_sessions(world, small=True, sessions=1)[0]
+    count = len(session) if n_frames is None else min(n_frames, len(session))
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = write_bag(Path(tmp) / "session", (sim.render_frame(world, session, i) for i in range(count)))
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, domain_id=domain)
+        node = RtabmapNode(context=ctx, parameter_overrides=[
+            Parameter("database_path", value=str(Path(tmp) / "bench.db")),
+            Parameter("export_dir", value=str(Path(tmp) / "exports")), Parameter("qos", value=qos)])
+        executor = MultiThreadedExecutor(num_threads=2, context=ctx)
+        executor.add_node(node)
+        thread = threading.Thread(target=executor.spin, daemon=True)
+        thread.start()
+        t0 = time.monotonic()
+        play = subprocess.run([sys.executable, "-m", "rtabmap_ros2.io.cli", "play", str(bag), "--delay", "2"],
+                              env=env, capture_output=True, text=True, timeout=600)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and node.frames_processed < count:
+            time.sleep(0.1)
+        wall = time.monotonic() - t0
+        latencies = np.array(node.latencies_s) * 1e3
+        result = {
+            "frames_in_bag": count, "frames_processed": node.frames_processed,
+            "frames_dropped_mailbox": node.frames_dropped,
+            "sync_dropped": dict(node._sync.dropped),
+            "bad_messages": {f"{t} ({k})": n for (t, k), n in node.bad_messages.items()},
+            "latency_median_ms": float(np.median(latencies)) if latencies.size else None,
+            "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else None,
+            "wall_s": wall, "play_returncode": play.returncode,
+        }
+        executor.shutdown()
+        thread.join(timeout=10)
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    print(f"latency last message of a set -> mapPath at 1 Hz ({count} frames played in real time, qos {qos}):")
+    for key, value in result.items():
+        print(f"  {key:28s} {value}")
+    return result
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,11 +136,10 @@ def main(argv: list[str] | None = None) -> int:
     for name, r in results["conversion"].items():
         print(f"{name:40s} {r['median_ms']:10.3f} {r['p95_ms']:10.3f}")
     if not args.skip_latency:
-        latency = bench_latency(args.quick)
-        if latency is None:
-            print("latency: skipped (core Rtabmap / simulator not available yet)")
-        else:
-            results["latency"] = latency
+        for qos in ("sensor_data", "reliable"):
+            latency = bench_latency(args.quick, qos)
+            if latency is not None:
+                results[f"latency_{qos}"] = latency
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(results, indent=2))
     print(f"wrote {RESULTS}")
