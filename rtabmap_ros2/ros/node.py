@@ -415,8 +415,8 @@ class RtabmapNode(Node):
         def serve(request, response):
             try:
                 action()
-            except (RtabmapError, OSError, ImportError) as exc:
-                self.get_logger().error(f"service {name} failed: {exc}")
+            except Exception as exc:  # noqa: BLE001 - a service must answer; the node keeps running
+                self.get_logger().error(f"service {name} failed: {type(exc).__name__}: {exc}")
             return response
         return serve
 
@@ -457,33 +457,44 @@ class RtabmapNode(Node):
         return path
 
     def _global_map(self):
-        """The global map of the whole database (all sessions, all constraints), after a flush."""
-        from rtabmap_ros2.core.global_map import load_global_map
+        """``(GlobalMap, OccupancyGrid or None)`` of the whole database (all sessions, all
+        constraints), read through a read-only connection after a flush."""
+        from rtabmap_ros2.core.database import Database
+        from rtabmap_ros2.core.global_map import global_grid, load_global_map
 
         self._in_worker(lambda: self._core.flush())
-        return load_global_map(self.database_path, self.params)
+        global_map = load_global_map(self.database_path, self.params)
+        grid = None
+        if global_map.poses:
+            db = Database(self.database_path, read_only=True)
+            try:
+                if db.load_scans(ids=list(global_map.poses)):
+                    grid = global_grid(global_map, db, self.params)
+            finally:
+                db.close()
+        return global_map, grid
 
     def publish_global_map(self) -> None:
         """Publish the global map on mapPath, mapGraph and (with scans) map."""
-        global_map = self._global_map()
+        global_map, grid = self._global_map()
         stamp = self.get_clock().now().nanoseconds
         map_frame = self.params.node.map_frame_id
         self._pub_path.publish(conv.path_to_msg(global_map.poses, stamp, map_frame))
         self._pub_graph.publish(conv.graph_to_markers(global_map.poses, global_map.links, stamp, map_frame))
-        if global_map.grid is not None:
-            self._pub_map.publish(conv.grid_to_msg(global_map.grid, stamp, map_frame))
+        if grid is not None:
+            self._pub_map.publish(conv.grid_to_msg(grid, stamp, map_frame))
         self.get_logger().info(f"published the global map ({len(global_map.poses)} nodes)")
 
     def _get_map(self, request, response):
         try:
-            global_map = self._global_map()
-        except (RtabmapError, OSError, ImportError) as exc:
-            self.get_logger().error(f"get_map failed: {exc}")
+            _, grid = self._global_map()
+        except Exception as exc:  # noqa: BLE001 - a service must answer; the node keeps running
+            self.get_logger().error(f"get_map failed: {type(exc).__name__}: {exc}")
             return response
-        if global_map.grid is None:
+        if grid is None:
             self.get_logger().warning("get_map: the map has no laser scans, so no occupancy grid")
             return response
-        response.map = conv.grid_to_msg(global_map.grid, self.get_clock().now().nanoseconds,
+        response.map = conv.grid_to_msg(grid, self.get_clock().now().nanoseconds,
                                         self.params.node.map_frame_id)
         return response
 
@@ -494,8 +505,8 @@ class RtabmapNode(Node):
             folder = new_export_folder(self.params.node.export_dir)
             self._in_worker(lambda: self._core.flush())
             summary = export_global_map(self.database_path, folder, self.params)
-        except (RtabmapError, OSError, ImportError) as exc:
-            response.success, response.message = False, f"export failed: {exc}"
+        except Exception as exc:  # noqa: BLE001 - a service must answer; the node keeps running
+            response.success, response.message = False, f"export failed: {type(exc).__name__}: {exc}"
             self.get_logger().error(response.message)
             return response
         response.success = True
