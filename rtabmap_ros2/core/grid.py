@@ -133,10 +133,13 @@ def build_grid(poses: dict[int, np.ndarray], scans: dict[int, LaserScan], params
         frac = step / np.repeat(np.maximum(n_samples, 1), n_samples)
         samples = origin_pts[beam] + vec[beam] * frac[:, None]
         cells = flat(samples)
-        # One miss per (beam, cell) and never on the beam's own end cell.
-        keep = cells != end_cells[beam]
-        pairs = np.unique(np.stack([beam[keep], cells[keep]], axis=1), axis=0)
-        np.add.at(miss_count, pairs[:, 1], 1)
+        # One miss per (beam, cell) and never on the beam's own end cell. A segment crosses each
+        # cell in one run of consecutive samples, so dropping repeats of the previous sample
+        # dedupes exactly in O(N) (np.unique over (beam, cell) rows was 70 % of the time).
+        first = np.ones(total, bool)
+        first[1:] = (cells[1:] != cells[:-1]) | (beam[1:] != beam[:-1])
+        keep = first & (cells != end_cells[beam])
+        np.add.at(miss_count, cells[keep], 1)
     data = np.full(height * width, UNKNOWN, np.int8)
     observed = (hit_count + miss_count) > 0
     data[observed] = FREE
