@@ -33,6 +33,8 @@ OCCUPIED = 100
 SAMPLES_PER_CELL = 2
 # Empty margin (cells) around the observed area.
 GRID_MARGIN_CELLS = 2
+# Ray casting: beams are cast in chunks of about this many samples (bounds memory to ~100 MB).
+MAX_SAMPLES_PER_CHUNK = 2_000_000
 # to_image() grey levels, as map_server writes them.
 IMAGE_UNKNOWN, IMAGE_FREE, IMAGE_OCCUPIED = 205, 254, 0
 
@@ -125,26 +127,38 @@ def build_grid(poses: dict[int, np.ndarray], scans: dict[int, LaserScan], params
     vec = end_pts - origin_pts
     length = np.linalg.norm(vec, axis=1)
     n_samples = np.ceil(length / res * SAMPLES_PER_CELL).astype(np.int64)
-    total = int(n_samples.sum())
-    if total:
-        beam = np.repeat(np.arange(len(vec)), n_samples)
-        start = np.cumsum(n_samples) - n_samples
-        step = np.arange(total) - np.repeat(start, n_samples)
-        frac = step / np.repeat(np.maximum(n_samples, 1), n_samples)
-        samples = origin_pts[beam] + vec[beam] * frac[:, None]
-        cells = flat(samples)
-        # One miss per (beam, cell) and never on the beam's own end cell. A segment crosses each
-        # cell in one run of consecutive samples, so dropping repeats of the previous sample
-        # dedupes exactly in O(N) (np.unique over (beam, cell) rows was 70 % of the time).
-        first = np.ones(total, bool)
-        first[1:] = (cells[1:] != cells[:-1]) | (beam[1:] != beam[:-1])
-        keep = first & (cells != end_cells[beam])
-        np.add.at(miss_count, cells[keep], 1)
+    # Beams are cast in chunks of about MAX_SAMPLES_PER_CHUNK samples (bounded memory).
+    chunk_of = np.cumsum(n_samples) // MAX_SAMPLES_PER_CHUNK
+    bounds = np.flatnonzero(np.diff(chunk_of)) + 1
+    for lo_b, hi_b in zip(np.r_[0, bounds], np.r_[bounds, len(vec)]):
+        _cast_misses(origin_pts[lo_b:hi_b], vec[lo_b:hi_b], n_samples[lo_b:hi_b], end_cells[lo_b:hi_b],
+                     flat, miss_count)
     data = np.full(height * width, UNKNOWN, np.int8)
     observed = (hit_count + miss_count) > 0
     data[observed] = FREE
     data[hit_count > miss_count] = OCCUPIED
     return OccupancyGrid(data.reshape(height, width), res, (float(origin_xy[0]), float(origin_xy[1])))
+
+
+def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, end_cells: np.ndarray,
+                 flat, miss_count: np.ndarray) -> None:
+    """Add one miss per cell crossed by each beam before its end cell (ray casting)."""
+    total = int(n_samples.sum())
+    if not total:
+        return
+    beam = np.repeat(np.arange(len(vec)), n_samples)
+    start = np.cumsum(n_samples) - n_samples
+    step = np.arange(total) - np.repeat(start, n_samples)
+    frac = step / np.repeat(np.maximum(n_samples, 1), n_samples)
+    samples = origins[beam] + vec[beam] * frac[:, None]
+    cells = flat(samples)
+    # One miss per (beam, cell) and never on the beam's own end cell. A segment crosses each
+    # cell in one run of consecutive samples, so dropping repeats of the previous sample
+    # dedupes exactly in O(N) (np.unique over (beam, cell) rows was 70 % of the time).
+    first = np.ones(total, bool)
+    first[1:] = (cells[1:] != cells[:-1]) | (beam[1:] != beam[:-1])
+    keep = first & (cells != end_cells[beam])
+    np.add.at(miss_count, cells[keep], 1)
 
 
 def _beams_map(T_map_base: np.ndarray, scan: LaserScan, range_max: float):
