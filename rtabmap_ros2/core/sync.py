@@ -30,7 +30,8 @@ Rules (message time everywhere: stamps, never the wall clock):
   (``dropped["late"]``). A silent stream therefore never wedges the synchroniser: its partners'
   queues just overflow until it comes back.
 * **Time jumps.** A stamp more than one period (at least :data:`MIN_RESET_JUMP_S`) older than the
-  newest stamp seen means the bag looped or the clock jumped: every queue and the rate limiter are
+  newest stamp of the *same* stream means the bag looped or the clock jumped (a message merely
+  delivered later than other streams' newer ones is not a jump): every queue and the rate limiter are
   reset, ``resets`` is incremented and a warning is logged; the message then starts the new
   timeline.
 
@@ -133,6 +134,7 @@ class FrameSynchronizer:
         for q in self._queues.values():
             q.clear()
         self._newest_ns: Optional[int] = None
+        self._stream_newest_ns: dict[str, int] = {}
         self._last_pivot_ns: Optional[int] = None   # newest pivot stamp already decided
         self._anchor_ns: Optional[int] = None       # start of the rate limiter's periods
         self._last_period: Optional[int] = None
@@ -149,12 +151,17 @@ class FrameSynchronizer:
         if stream not in self._queues:
             return []
         stamp_ns = int(stamp_ns)
-        if self._newest_ns is not None and stamp_ns < self._newest_ns - self._reset_jump_ns:
+        # A time jump is a stream going back on itself; a message merely arriving later than
+        # other streams' newer ones (network or DDS delay) is not one.
+        previous = self._stream_newest_ns.get(stream)
+        if previous is not None and stamp_ns < previous - self._reset_jump_ns:
             self.resets += 1
             logger.warning(
                 "time went backwards by %.3f s on stream %r (bag loop or clock jump): synchroniser reset",
-                (self._newest_ns - stamp_ns) / NS_PER_S, stream)
+                (previous - stamp_ns) / NS_PER_S, stream)
             self._clear_timeline()
+        if previous is None or stamp_ns > previous:
+            self._stream_newest_ns[stream] = stamp_ns
         if self._newest_ns is None or stamp_ns > self._newest_ns:
             self._newest_ns = stamp_ns
         if stream == self.pivot and self._last_pivot_ns is not None and stamp_ns <= self._last_pivot_ns:

@@ -141,3 +141,17 @@ def test_unrequired_streams_are_ignored():
     sync = FrameSynchronizer(SyncParams(rate_hz=0), {"rgb"})
     assert sync.add("imu", 1, None) == []
     assert len(sync.add("rgb", 1, None)) == 1
+
+
+def test_message_delivered_late_relative_to_other_streams_is_not_a_time_jump():
+    """DDS can deliver a scan seconds after newer images: it must still join its set."""
+    sync = FrameSynchronizer(SyncParams(rate_hz=0.0, tolerance_s=0.05), {"rgb", "scan"})
+    emitted = []
+    for k in range(5):
+        emitted += sync.add("rgb", k * S, f"rgb{k}")
+    # The scans of the five frames arrive only now, 3 s late.
+    for k in range(5):
+        emitted += sync.add("scan", k * S, f"scan{k}")
+    emitted += sync.flush()
+    assert sync.resets == 0
+    assert [s.values["scan"] for s in emitted] == [f"scan{k}" for k in range(5)]
