@@ -193,7 +193,11 @@ def voxel_filter(points: np.ndarray, colors: np.ndarray | None, voxel: float):
     if len(pts) == 0:
         return pts.astype(np.float32), None if colors is None else np.zeros((0, 3), np.uint8)
     keys = np.floor(pts / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    # One int64 key per voxel (1D np.unique is ~10x faster than over rows).
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat_keys = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, inverse, counts = np.unique(flat_keys, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
     sums = np.zeros((len(counts), 3))
     np.add.at(sums, inverse, pts)
