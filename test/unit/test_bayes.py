@@ -1,0 +1,111 @@
+"""Bayes filter of the 2013 paper (§III-C, D): observation model, transition model, selection."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rtabmap_ros2.core.bayes import NEW_LOCATION, BayesFilter, likelihood
+from rtabmap_ros2.core.graph import Graph, Link, LinkType
+from rtabmap_ros2.core.params import BayesParams
+
+
+def chain(ids, loops=()) -> Graph:
+    """Neighbour links between consecutive ids, plus loop closure links (a, b)."""
+    graph = Graph([Link(a, b, LinkType.NEIGHBOR) for a, b in zip(ids[:-1], ids[1:])]
+                  + [Link(a, b, LinkType.LOOP_INTRA) for a, b in loops])
+    for node in ids:
+        graph.add_node(node)
+    return graph
+
+
+def test_likelihood_matches_eq3_eq4_by_hand():
+    # Non-null scores 0.1, 0.2, 0.6: mu = 0.3, sigma (population std) = sqrt(0.14 / 3).
+    out = likelihood({1: 0.1, 2: 0.2, 3: 0.6, 4: 0.0})
+    mu, sigma = 0.3, math.sqrt(0.14 / 3)
+    # Eq. 3: only s_j >= mu + sigma (0.516) gets (s_j - sigma) / mu; others (and zeros) get 1.
+    assert out[3] == pytest.approx((0.6 - sigma) / mu)
+    assert out[1] == out[2] == out[4] == 1.0
+    # Eq. 4: new location likelihood mu / sigma + 1.
+    assert out[NEW_LOCATION] == pytest.approx(mu / sigma + 1.0)
+
+
+def test_likelihood_without_any_shared_word_favours_nothing():
+    out = likelihood({1: 0.0, 2: 0.0})
+    assert out == {1: 1.0, 2: 1.0, NEW_LOCATION: 1.0}
+
+
+def test_prediction_from_new_location_uses_the_0_9_0_1_transitions():
+    bayes = BayesFilter(BayesParams(), chain([1, 2, 3, 4, 5]))
+    belief = bayes.predict(np.array([1, 2, 3, 4, 5]))
+    assert belief[0] == pytest.approx(0.9)  # p(S_t=-1 | S_t-1=-1)
+    np.testing.assert_allclose(belief[1:], 0.1 / 5)  # the rest spread uniformly over WM
+    assert belief.sum() == pytest.approx(1.0)
+
+
+def test_prediction_from_a_location_keeps_mass_and_peaks_on_it():
+    ids = np.arange(1, 41)
+    bayes = BayesFilter(BayesParams(), chain(ids.tolist()))
+    bayes.posterior = {NEW_LOCATION: 0.2, 20: 0.5, 30: 0.3}
+    belief = bayes.predict(ids)
+    assert belief.sum() == pytest.approx(1.0)
+    # p(S_t=-1) = 0.9 * 0.2 + 0.1 * (0.5 + 0.3)
+    assert belief[0] == pytest.approx(0.9 * 0.2 + 0.1 * 0.8)
+    # Location 20 (col 20) peaks, its Gaussian falls off with hops: hop 1 / hop 0 = exp(-1/(2 sigma^2)).
+    around = belief[1:]
+    assert around.argmax() == 19
+    uniform = 0.1 * 0.2 / len(ids)
+    ratio = (around[20] - uniform) / (around[19] - uniform)
+    assert ratio == pytest.approx(math.exp(-0.5 / 1.6 ** 2), rel=1e-6)
+    # Beyond the 16-hop neighbourhood of both 20 and 30 only the uniform part is left.
+    assert around[0] == pytest.approx(uniform)
+
+
+def test_neighbourhood_reaches_through_a_node_not_in_wm():
+    # 1 - 2 - 3 and a loop closure 3 - 10; 2 and 3 are in LTM (not hypotheses this frame).
+    graph = chain([1, 2, 3], loops=[(3, 10)])
+    graph.add_node(10)
+    bayes = BayesFilter(BayesParams(), graph)
+    bayes.posterior = {NEW_LOCATION: 0.0, 1: 1.0}
+    wm = np.array([1, 10, 11])
+    belief = bayes.predict(wm)
+    assert belief[2] > 0.0  # 10 is 3 hops away through 2 and 3
+    assert belief[3] == 0.0  # 11 is not linked to 1
+    # The 0.9 of location 1 is shared by 1 and 10 only (normalised over WM neighbours).
+    assert belief[1] + belief[2] == pytest.approx(0.9)
+    assert belief[1] / belief[2] == pytest.approx(1.0 / math.exp(-0.5 * (3 / 1.6) ** 2))
+
+
+def test_repeated_strong_observation_drives_the_posterior_up_until_accepted():
+    ids = np.arange(1, 31)
+    bayes = BayesFilter(BayesParams(), chain(ids.tolist()))
+    scores = {int(i): 0.05 for i in ids}
+    scores[12] = 0.6  # the current images keep looking like location 12
+    values = []
+    for _ in range(5):
+        bayes.update(ids, likelihood(scores))
+        hypothesis = bayes.highest()
+        values.append(hypothesis.probability)
+        assert hypothesis.location_id == 12
+    assert all(b > a for a, b in zip(values, values[1:]))
+    assert not bayes.accepted(type(hypothesis)(12, 0.05, 0.95))  # below T_loop
+    assert bayes.accepted(bayes.highest())
+    assert sum(bayes.posterior.values()) == pytest.approx(1.0)
+
+
+def test_uniform_observations_keep_the_new_location_hypothesis():
+    ids = np.arange(1, 31)
+    bayes = BayesFilter(BayesParams(), chain(ids.tolist()))
+    for _ in range(5):
+        bayes.update(ids, likelihood({int(i): 0.05 for i in ids}))
+    assert bayes.posterior[NEW_LOCATION] > 0.5
+    assert not bayes.accepted(bayes.highest())
+
+
+def test_single_hypothesis_is_never_accepted():
+    bayes = BayesFilter(BayesParams(loop_threshold=0.0), chain([1]))
+    bayes.update(np.array([1]), {NEW_LOCATION: 0.1, 1: 10.0})
+    assert bayes.highest().location_id == 1
+    assert not bayes.accepted(bayes.highest())

@@ -1,0 +1,121 @@
+"""Typed parameters: defaults, RTAB-Map aliases, YAML (plain and ROS), --set, errors."""
+
+from __future__ import annotations
+
+import pytest
+
+from rtabmap_ros2.core.params import Params, default_config_path
+from rtabmap_ros2.errors import ParameterError
+
+
+def test_defaults_are_the_papers_table_i():
+    p = Params()
+    assert p.memory.stm_size == 30
+    assert p.memory.rehearsal_similarity == pytest.approx(0.20)
+    assert p.memory.recent_wm_ratio == pytest.approx(0.20)
+    assert p.memory.bad_signature_ratio == pytest.approx(0.25)
+    assert p.memory.time_threshold_ms == pytest.approx(700.0)
+    assert p.memory.max_retrieved == 2
+    assert p.vocabulary.nndr == pytest.approx(0.8)
+    assert p.features.max_features == 400
+    assert p.bayes.sigma == pytest.approx(1.6) and p.bayes.neighborhood == 16
+
+
+@pytest.mark.parametrize("alias, value, section, field, expected", [
+    ("Mem/STMSize", "15", "memory", "stm_size", 15),
+    ("Mem/RehearsalSimilarity", "0.45", "memory", "rehearsal_similarity", 0.45),
+    ("Mem/RecentWmRatio", 0.3, "memory", "recent_wm_ratio", 0.3),
+    ("Rtabmap/LoopThr", "0.2", "bayes", "loop_threshold", 0.2),
+    ("Rtabmap/TimeThr", "500", "memory", "time_threshold_ms", 500.0),
+    ("Rtabmap/MaxRetrieved", 3, "memory", "max_retrieved", 3),
+    ("Kp/NndrRatio", "0.7", "vocabulary", "nndr", 0.7),
+    ("Kp/MaxFeatures", "200", "features", "max_features", 200),
+    ("Kp/BadSignRatio", "0.5", "memory", "bad_signature_ratio", 0.5),
+    ("Kp/DetectorStrategy", "2", "features", "detector", "orb"),
+])
+def test_rtabmap_aliases_map_to_typed_fields(alias, value, section, field, expected):
+    p = Params().with_value(alias, value)
+    assert getattr(getattr(p, section), field) == expected
+    assert type(getattr(getattr(p, section), field)) is type(expected)
+
+
+def test_set_overrides_accept_dotted_and_rtabmap_names_in_order():
+    p = Params().with_overrides(["Mem/STMSize=12", "memory.rehearsal_similarity=0.3", "memory.stm_size=7"])
+    assert p.memory.stm_size == 7
+    assert p.memory.rehearsal_similarity == pytest.approx(0.3)
+    assert Params().memory.stm_size == 30  # frozen: the original is unchanged
+
+
+@pytest.mark.parametrize("assignment", ["memory.stm_size", "nosuch.key=1", "memory.nosuch=1", "Mem/Nosuch=2",
+                                        "memory.stm_size=0", "memory.stm_size=abc", "memory.stm_size=2.5",
+                                        "bayes.loop_threshold=1.5", "vocabulary.nndr=0",
+                                        "features.detector=surf", "memory.keep_one_node_per_session=maybe"])
+def test_bad_set_assignments_raise_parameter_error(assignment):
+    with pytest.raises(ParameterError):
+        Params().with_overrides([assignment])
+
+
+def test_parameter_error_names_the_bad_value():
+    with pytest.raises(ParameterError, match="stm_size.*-3"):
+        Params().with_value("memory.stm_size", -3)
+    with pytest.raises(ParameterError, match="unknown parameter 'memory.stmsize'"):
+        Params().with_value("memory.stmsize", 3)
+
+
+def test_plain_yaml(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text("memory:\n  stm_size: 12\n  time_threshold_ms: 300\nbayes:\n  loop_threshold: 0.2\n"
+                    "Kp/MaxFeatures: 250\n")
+    p = Params.from_yaml(path)
+    assert (p.memory.stm_size, p.memory.time_threshold_ms, p.bayes.loop_threshold) == (12, 300.0, 0.2)
+    assert p.features.max_features == 250
+
+
+def test_ros_parameter_file_yaml(tmp_path):
+    path = tmp_path / "ros.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    frame_id: base_footprint\n    detection_rate: 2.0\n"
+                    "    memory:\n      stm_size: 9\n    Mem/RehearsalSimilarity: 0.45\n")
+    p = Params.from_yaml(path)
+    assert p.node.frame_id == "base_footprint"
+    assert p.sync.rate_hz == 2.0
+    assert p.memory.stm_size == 9 and p.memory.rehearsal_similarity == 0.45
+
+
+def test_yaml_errors(tmp_path):
+    unknown = tmp_path / "u.yaml"
+    unknown.write_text("memory:\n  stm_sise: 3\n")
+    with pytest.raises(ParameterError, match="stm_sise"):
+        Params.from_yaml(unknown)
+    broken = tmp_path / "b.yaml"
+    broken.write_text("memory: [1, 2\n")
+    with pytest.raises(ParameterError):
+        Params.from_yaml(broken)
+    with pytest.raises(ParameterError):
+        Params.from_yaml(tmp_path / "missing.yaml")
+    scalar = tmp_path / "s.yaml"
+    scalar.write_text("3\n")
+    with pytest.raises(ParameterError):
+        Params.from_yaml(scalar)
+
+
+def test_yaml_uses_safe_load(tmp_path):
+    path = tmp_path / "evil.yaml"
+    path.write_text("memory:\n  stm_size: !!python/object/apply:os.system ['true']\n")
+    with pytest.raises(ParameterError):
+        Params.from_yaml(path)
+
+
+def test_shipped_config_loads_with_the_2014_values():
+    path = default_config_path("rtabmap.yaml")
+    assert path is not None and path.is_file()
+    p = Params.from_yaml(path)
+    assert p.memory.stm_size == 10
+    assert p.memory.rehearsal_similarity == pytest.approx(0.45)
+    assert p.memory.time_threshold_ms == pytest.approx(700.0)
+
+
+def test_round_trip_through_yaml(tmp_path):
+    p = Params().with_overrides(["memory.stm_size=11", "features.roi_ratios=0 0 0.1 0.4"])
+    p.to_yaml(tmp_path / "out.yaml")
+    again = Params.from_yaml(tmp_path / "out.yaml")
+    assert again == p
