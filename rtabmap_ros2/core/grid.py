@@ -82,6 +82,95 @@ class OccupancyGrid:
         return img[::-1]  # image row 0 = top = largest y
 
 
+class GridAccumulator:
+    """Hit and miss counts of scans cast at map poses, on a canvas that grows as needed.
+
+    Adding a node ray-casts its scan once; :meth:`grid` thresholds the counts. The local map
+    keeps one accumulator and only rebuilds it when optimised poses move (a loop closure), as
+    RTAB-Map's map assembler does, so a frame costs one scan's ray casting, not the whole map's.
+    """
+
+    def __init__(self, params: GridParams) -> None:
+        self.resolution = params.resolution
+        self.range_max = params.range_max
+        self._origin_cell = np.zeros(2, np.int64)  # cell index of array element (0, 0)
+        self._hits = np.zeros((0, 0), np.int32)
+        self._misses = np.zeros((0, 0), np.int32)
+
+    def add(self, T_map_base: np.ndarray, scan: LaserScan) -> None:
+        """Ray-cast one scan taken at ``T_map_base`` (4x4) into the counts."""
+        res = self.resolution
+        origin_pts, end_pts, is_hit = _beams_map(T_map_base, scan, self.range_max)
+        if not len(end_pts):
+            return
+        lo = np.floor(np.minimum(origin_pts.min(axis=0), end_pts.min(axis=0)) / res).astype(np.int64)
+        hi = np.floor(np.maximum(origin_pts.max(axis=0), end_pts.max(axis=0)) / res).astype(np.int64)
+        self._ensure(lo - GRID_MARGIN_CELLS, hi + GRID_MARGIN_CELLS)
+        height, width = self._hits.shape
+        base = self._origin_cell * res
+
+        def flat(points: np.ndarray) -> np.ndarray:
+            cells = np.floor((points - base) / res).astype(np.int64)
+            return cells[:, 1] * width + cells[:, 0]
+
+        end_cells = flat(end_pts)
+        hits = self._hits.reshape(-1)
+        misses = self._misses.reshape(-1)
+        # Hits: the end cell of every beam with a return.
+        hits += np.bincount(end_cells[is_hit], minlength=hits.size).astype(np.int32)
+        # Misses: cells crossed by each beam before its end (ray casting, SAMPLES_PER_CELL per cell),
+        # in chunks of about MAX_SAMPLES_PER_CHUNK samples (bounded memory).
+        vec = end_pts - origin_pts
+        n_samples = np.ceil(np.linalg.norm(vec, axis=1) / res * SAMPLES_PER_CELL).astype(np.int64)
+        chunk_of = np.cumsum(n_samples) // MAX_SAMPLES_PER_CHUNK
+        bounds = np.flatnonzero(np.diff(chunk_of)) + 1
+        for lo_b, hi_b in zip(np.r_[0, bounds], np.r_[bounds, len(vec)]):
+            _cast_misses(origin_pts[lo_b:hi_b], vec[lo_b:hi_b], n_samples[lo_b:hi_b], end_cells[lo_b:hi_b],
+                         flat, misses)
+
+    def _ensure(self, lo_cell: np.ndarray, hi_cell: np.ndarray) -> None:
+        """Grow the canvas (with slack, so growth is rare) to hold cells lo_cell..hi_cell."""
+        height, width = self._hits.shape
+        cur_lo = self._origin_cell
+        cur_hi = cur_lo + np.array([width, height]) - 1
+        if height and np.all(lo_cell >= cur_lo) and np.all(hi_cell <= cur_hi):
+            return
+        if not height:
+            new_lo, new_hi = lo_cell, hi_cell
+        else:
+            slack = np.array([width, height]) // 2
+            new_lo = np.where(lo_cell < cur_lo, np.minimum(lo_cell, cur_lo - slack), cur_lo)
+            new_hi = np.where(hi_cell > cur_hi, np.maximum(hi_cell, cur_hi + slack), cur_hi)
+        new_w, new_h = (new_hi - new_lo + 1).tolist()
+        hits = np.zeros((new_h, new_w), np.int32)
+        misses = np.zeros((new_h, new_w), np.int32)
+        if height:
+            dx, dy = (cur_lo - new_lo).tolist()
+            hits[dy:dy + height, dx:dx + width] = self._hits
+            misses[dy:dy + height, dx:dx + width] = self._misses
+        self._hits, self._misses, self._origin_cell = hits, misses, new_lo
+
+    def grid(self) -> OccupancyGrid:
+        """The occupancy grid cropped to the observed cells (plus a small margin)."""
+        res = self.resolution
+        observed = (self._hits + self._misses) > 0
+        if not observed.any():
+            return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), res, (0.0, 0.0))
+        rows = np.flatnonzero(observed.any(axis=1))
+        cols = np.flatnonzero(observed.any(axis=0))
+        r0 = max(int(rows[0]) - GRID_MARGIN_CELLS, 0)
+        r1 = min(int(rows[-1]) + GRID_MARGIN_CELLS + 1, observed.shape[0])
+        c0 = max(int(cols[0]) - GRID_MARGIN_CELLS, 0)
+        c1 = min(int(cols[-1]) + GRID_MARGIN_CELLS + 1, observed.shape[1])
+        hits = self._hits[r0:r1, c0:c1]
+        misses = self._misses[r0:r1, c0:c1]
+        data = np.full(hits.shape, UNKNOWN, np.int8)
+        data[(hits + misses) > 0] = FREE
+        data[hits > misses] = OCCUPIED
+        origin = (self._origin_cell + np.array([c0, r0])) * res
+        return OccupancyGrid(data, res, (float(origin[0]), float(origin[1])))
+
+
 def build_grid(poses: dict[int, np.ndarray], scans: dict[int, LaserScan], params: GridParams) -> OccupancyGrid:
     """Occupancy grid of the scans of the nodes in ``poses`` (nodes without a scan are skipped).
 
@@ -94,50 +183,12 @@ def build_grid(poses: dict[int, np.ndarray], scans: dict[int, LaserScan], params
         :class:`OccupancyGrid` covering every observed cell (with a small margin); an empty
         1x1 unknown grid when no node has a scan.
     """
-    res = params.resolution
-    origins, ends, hits = [], [], []
+    accumulator = GridAccumulator(params)
     for node_id, T_map_base in poses.items():
         scan = scans.get(node_id)
-        if scan is None:
-            continue
-        o, e, h = _beams_map(T_map_base, scan, params.range_max)
-        origins.append(o)
-        ends.append(e)
-        hits.append(h)
-    if not origins:
-        return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), res, (0.0, 0.0))
-    origin_pts = np.concatenate(origins)
-    end_pts = np.concatenate(ends)
-    is_hit = np.concatenate(hits)
-    lo = np.minimum(origin_pts.min(axis=0), end_pts.min(axis=0)) - GRID_MARGIN_CELLS * res
-    hi = np.maximum(origin_pts.max(axis=0), end_pts.max(axis=0)) + GRID_MARGIN_CELLS * res
-    origin_xy = np.floor(lo / res) * res
-    width, height = (np.ceil((hi - origin_xy) / res).astype(int) + 1).tolist()
-    hit_count = np.zeros(height * width, np.int32)
-    miss_count = np.zeros(height * width, np.int32)
-
-    def flat(points: np.ndarray) -> np.ndarray:
-        cells = np.floor((points - origin_xy) / res).astype(np.int64)
-        return cells[:, 1] * width + cells[:, 0]
-
-    end_cells = flat(end_pts)
-    # Hits: the end cell of every beam with a return.
-    np.add.at(hit_count, end_cells[is_hit], 1)
-    # Misses: cells crossed by each beam before its end (ray casting, SAMPLES_PER_CELL per cell).
-    vec = end_pts - origin_pts
-    length = np.linalg.norm(vec, axis=1)
-    n_samples = np.ceil(length / res * SAMPLES_PER_CELL).astype(np.int64)
-    # Beams are cast in chunks of about MAX_SAMPLES_PER_CHUNK samples (bounded memory).
-    chunk_of = np.cumsum(n_samples) // MAX_SAMPLES_PER_CHUNK
-    bounds = np.flatnonzero(np.diff(chunk_of)) + 1
-    for lo_b, hi_b in zip(np.r_[0, bounds], np.r_[bounds, len(vec)]):
-        _cast_misses(origin_pts[lo_b:hi_b], vec[lo_b:hi_b], n_samples[lo_b:hi_b], end_cells[lo_b:hi_b],
-                     flat, miss_count)
-    data = np.full(height * width, UNKNOWN, np.int8)
-    observed = (hit_count + miss_count) > 0
-    data[observed] = FREE
-    data[hit_count > miss_count] = OCCUPIED
-    return OccupancyGrid(data.reshape(height, width), res, (float(origin_xy[0]), float(origin_xy[1])))
+        if scan is not None:
+            accumulator.add(T_map_base, scan)
+    return accumulator.grid()
 
 
 def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, end_cells: np.ndarray,
@@ -158,7 +209,7 @@ def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, en
     first = np.ones(total, bool)
     first[1:] = (cells[1:] != cells[:-1]) | (beam[1:] != beam[:-1])
     keep = first & (cells != end_cells[beam])
-    np.add.at(miss_count, cells[keep], 1)
+    miss_count += np.bincount(cells[keep], minlength=miss_count.size).astype(np.int32)
 
 
 def _beams_map(T_map_base: np.ndarray, scan: LaserScan, range_max: float):

@@ -210,7 +210,10 @@ class GridParams:
     """Occupancy grid (nav_msgs conventions) and assembled point cloud."""
 
     resolution: float = _p(0.05, "Cell size of the occupancy grid", "m")
-    range_max: float = _p(0.0, "Ignore laser returns farther than this (0 = scan's range_max)", "m")
+    range_max: float = _p(
+        5.0, "Use laser returns up to this range, and clear free space up to it along beams with no "
+        "return (0 = the scan's range_max; RTAB-Map's Grid/RangeMax default: farther returns are "
+        "noisier and cost ray casting time)", "m")
     cloud_voxel_size: float = _p(0.05, "Voxel size of the assembled RGB-D point cloud", "m")
     cloud_decimation: int = _p(4, "Use every n-th depth pixel in each direction for the point cloud", "px")
 

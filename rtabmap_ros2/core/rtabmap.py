@@ -29,6 +29,7 @@ from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
+from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
 from rtabmap_ros2.core.graph import Graph, Link, LinkType, chain_poses, default_information, loop_type
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import optimize
@@ -44,6 +45,9 @@ log = logging.getLogger(__name__)
 ODOM_RESET_VARIANCE = 9999.0
 # An odometry reset puts the robot back at the origin: within this heading as well (rad).
 ODOM_RESET_MAX_ANGLE = 0.2
+# Optimised poses closer than this are "unchanged" (the local grid is not rebuilt).
+POSE_EPSILON_M = 1e-3
+POSE_EPSILON_RAD = 1e-3
 TIMING_KEYS = ("features", "quantization", "rehearsal", "bayes", "verification", "retrieval",
                "optimization", "transfer", "database")
 
@@ -136,6 +140,8 @@ class Rtabmap:
         self._last_odom: Optional[np.ndarray] = None
         self._session_nodes = 0
         self._new_map_requested = False
+        self._grid: Optional[GridAccumulator] = None
+        self._grid_poses: dict[int, np.ndarray] = {}
 
     # -- public API ----------------------------------------------------------------------------
     @property
@@ -202,15 +208,27 @@ class Rtabmap:
         return LocalMap(dict(self._optimized), list(self._local_links),
                         {n: self.memory.map_ids[n] for n in self._optimized}, self._T_map_odom.copy())
 
-    def local_grid(self):
-        """Occupancy grid of the local map from the nodes' laser scans, or None without scans."""
-        from rtabmap_ros2.core.grid import build_grid
+    def local_grid(self) -> Optional[OccupancyGrid]:
+        """Occupancy grid of the local map from the nodes' laser scans, or None without scans.
 
-        scans = {n: self.memory.signatures[n].scan for n in self._optimized
-                 if n in self.memory.signatures and self.memory.signatures[n].scan is not None}
+        Incremental: new nodes are ray-cast into the previous grid; the grid is rebuilt only
+        when a node of it left the local map or its optimised pose moved (a loop closure).
+        """
+        signatures = self.memory.signatures
+        scans = {n: signatures[n].scan for n in self._optimized
+                 if n in signatures and signatures[n].scan is not None}
         if not scans:
             return None
-        return build_grid({n: self._optimized[n] for n in scans}, scans, self.params.grid)
+        cast = self._grid_poses
+        moved = any(n not in scans or not _same_pose(pose, self._optimized[n]) for n, pose in cast.items())
+        if moved or self._grid is None:
+            self._grid = GridAccumulator(self.params.grid)
+            cast.clear()
+        for node, scan in scans.items():
+            if node not in cast:
+                self._grid.add(self._optimized[node], scan)
+                cast[node] = self._optimized[node]
+        return self._grid.grid()
 
     def trigger_new_map(self) -> int:
         """Start a new map (session) at the next frame; returns its id."""
@@ -475,6 +493,12 @@ def _warm_start(root: int, root_pose: np.ndarray, links: list[Link],
         frontier = nxt
     align = root_pose @ transforms.inverse(poses[root])
     return {n: align @ p for n, p in poses.items()}
+
+
+def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
+    """Poses equal within what a grid cell can show (1 mm, 0.001 rad)."""
+    return bool(np.abs(a[:3, 3] - b[:3, 3]).max() < POSE_EPSILON_M
+                and transforms.rotation_angle(transforms.relative(a, b)) < POSE_EPSILON_RAD)
 
 
 def _delete_database(path: Path) -> None:
