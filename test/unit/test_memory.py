@@ -1,0 +1,150 @@
+"""Memory (2013 §III-B, E, F): rehearsal, STM -> WM, transfer (Alg. 4), retrieval (Alg. 3).
+
+Locations are built from random ORB-like descriptors (every one a new word), so the tests control
+exactly which words each location holds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rtabmap_ros2.core.database import Database
+from rtabmap_ros2.core.graph import Link, LinkType
+from rtabmap_ros2.core.memory import Memory
+from rtabmap_ros2.core.params import Params
+from rtabmap_ros2.core.signature import Signature
+
+WORDS = 50
+
+
+def make_memory(tmp_path, **memory_overrides) -> Memory:
+    params = Params().with_overrides([f"memory.{k}={v}" for k, v in memory_overrides.items()])
+    return Memory(params, Database(tmp_path / "m.db"), binary_descriptors=True)
+
+
+def add(memory: Memory, node_id: int, descriptors: np.ndarray) -> int:
+    """One frame of Alg. 1 (quantise, STM insertion, rehearsal, STM -> WM, commit); returns merged id."""
+    before = memory.vocabulary.next_word_id
+    word_ids = memory.quantize(descriptors)
+    sig = Signature(id=node_id, map_id=memory.map_id, stamp_ns=node_id, word_ids=word_ids,
+                    keypoints=np.zeros((len(word_ids), 2), np.float32),
+                    points3d=np.full((len(word_ids), 3), np.nan, np.float32))
+    previous = memory.last_location()
+    memory.add_location(sig, None, Link(previous.id, node_id, LinkType.NEIGHBOR) if previous else None)
+    merged = memory.rehearse(sig, [w for w in word_ids.tolist() if w >= before])
+    memory.update_stm()
+    memory.commit()
+    memory.join()
+    return merged
+
+
+@pytest.fixture
+def descriptors(rng):
+    return lambda: rng.integers(0, 256, (WORDS, 32), dtype=np.uint8)
+
+
+def test_rehearsal_merges_the_same_view_and_adds_weight(tmp_path, descriptors):
+    memory = make_memory(tmp_path)
+    view = descriptors()
+    assert add(memory, 1, view) == 0
+    words = len(memory.vocabulary)
+    assert add(memory, 2, view) == 1
+    assert add(memory, 3, view) == 2
+    assert list(memory.signatures) == [3] and memory.stm == [3]
+    assert memory.signatures[3].weight == 2
+    assert len(memory.vocabulary) == words  # no word added by the repeated views
+    assert all(memory.vocabulary.references(int(w)) == {3: 1} for w in memory.signatures[3].word_ids[:5])
+    assert 1 not in memory.graph and 2 not in memory.graph
+    assert set(memory.db.load_nodes()) == {3}
+
+
+def test_different_views_are_not_merged(tmp_path, descriptors):
+    memory = make_memory(tmp_path)
+    assert add(memory, 1, descriptors()) == 0
+    assert add(memory, 2, descriptors()) == 0
+    assert memory.signatures[2].weight == 0
+    assert memory.graph.link(1, 2) is not None
+
+
+def test_stm_holds_t_stm_locations_the_older_go_to_wm(tmp_path, descriptors):
+    memory = make_memory(tmp_path, stm_size=3)
+    for node in range(1, 7):
+        add(memory, node, descriptors())
+        assert len(memory.stm) <= 3
+    assert memory.stm == [4, 5, 6]
+    assert list(memory.wm) == [1, 2, 3]
+    np.testing.assert_array_equal(memory.hypothesis_ids(), [1, 2, 3])  # STM is not a hypothesis
+
+
+def filled(tmp_path, descriptors, weights: dict[int, int]) -> Memory:
+    memory = make_memory(tmp_path, stm_size=2, recent_wm_ratio=0.0)
+    for node in range(1, len(weights) + 3):
+        add(memory, node, descriptors())
+    for node, weight in weights.items():
+        memory.signatures[node].weight = weight
+    return memory
+
+
+def test_transfer_moves_the_oldest_lowest_weighted_until_enough_words_left(tmp_path, descriptors):
+    memory = filled(tmp_path, descriptors, {1: 3, 2: 0, 3: 0, 4: 5, 5: 0, 6: 1})
+    words_before = len(memory.vocabulary)
+    memory.words_added = 2 * WORDS + 1  # needs three locations' words to leave the vocabulary
+    moved = memory.transfer(protected={3})
+    assert moved == [2, 5, 6]
+    assert len(memory.vocabulary) == words_before - 3 * WORDS
+    assert set(memory.wm) == {1, 3, 4} and memory.stm == [7, 8]
+    memory.commit()
+    memory.join()
+    assert set(memory.db.wm_ids()) == {1, 3, 4, 7, 8}  # LTM flag written
+    assert memory.ltm_size == 3
+
+
+def test_transfer_moves_at_least_one_location(tmp_path, descriptors):
+    memory = filled(tmp_path, descriptors, {1: 1, 2: 0, 3: 2})
+    memory.words_added = 0
+    assert memory.transfer(protected=set()) == [2]
+
+
+def test_recent_part_of_wm_is_protected(tmp_path, descriptors):
+    memory = filled(tmp_path, descriptors, {1: 0, 2: 0, 3: 0, 4: 0})
+    memory.params = Params().with_overrides(["memory.stm_size=2", "memory.recent_wm_ratio=0.5"])
+    memory.last_loop_closure_id = 2
+    memory.signatures[4].weight = 1
+    memory.words_added = 10 * WORDS
+    moved = memory.transfer(protected=set())
+    # T_recent: half of WM (2 locations) after the last loop closure (3, 4) stays.
+    assert moved == [1, 2]
+
+
+def test_retrieval_brings_back_time_neighbours_first_with_their_words(tmp_path, descriptors):
+    memory = filled(tmp_path, descriptors, {1: 3, 2: 0, 3: 0, 4: 5, 5: 0, 6: 1})
+    memory.add_link(Link(4, 1, LinkType.LOOP_INTRA))  # a space neighbour of 4 (1 hop)
+    memory.words_added = 4 * WORDS
+    moved = memory.transfer(protected={4})
+    assert moved == [2, 3, 5, 6]
+    memory.commit()
+    memory.join()
+    lost = memory.db.load_signature(5).word_ids
+    assert not any(memory.vocabulary.contains(int(w)) for w in lost)
+    # Time neighbours of 4 by hops: 5 and 3 (1 hop), then 2 and 6 (2 hops); 1 is in WM.
+    assert memory.retrieval_candidates(4) == [3, 5, 2, 6]
+    assert memory.retrieve(4) == [3, 5]  # Rtabmap/MaxRetrieved = 2
+    assert {3, 5} <= set(memory.wm)
+    assert all(memory.vocabulary.contains(int(w)) for w in lost)
+    assert memory.vocabulary.references(int(lost[0])) == {5: 1}
+    memory.commit()
+    memory.join()
+    assert {3, 5} <= set(memory.db.wm_ids())
+    # Retrieved locations are not transferred again in the same frame.
+    memory.retrieved_now = [3, 5]
+    memory.words_added = 100 * WORDS
+    assert not {3, 5} & set(memory.transfer(protected=set()))
+
+
+def test_bad_signature_threshold_follows_the_average(tmp_path):
+    memory = make_memory(tmp_path)
+    assert not memory.is_bad_signature(400)
+    assert not memory.is_bad_signature(380)
+    assert memory.is_bad_signature(60)  # < 0.25 x average
+    assert memory.is_bad_signature(0)
