@@ -432,9 +432,12 @@ class Rtabmap:
         component = memory.graph.component(root, allowed=memory.signatures)
         links = _links_within(memory.graph, component)
         root_pose = memory.signatures[root].T_odom_base
-        guess = _warm_start(root, root_pose, links, self._optimized)
         if not any(link.type.is_loop_closure for link in links):
-            return guess
+            # A tree of neighbour links: chaining them is the optimum. (Re-using the previous
+            # poses here fed round-off back every frame: rotations lost orthonormality
+            # exponentially, x2 per frame, and poses overflowed after ~1,000 frames.)
+            return chain_poses(root, root_pose, links)
+        guess = _warm_start(root, root_pose, links, self._optimized)
         result = optimize(guess, links, root, self.params.graph, planar=bool(self._planar))
         for link in result.rejected:
             # Robust option: a loop closure inconsistent with the graph is removed from the map.
