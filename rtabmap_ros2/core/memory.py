@@ -165,6 +165,9 @@ class Memory:
         # Weight of L_t increased by L_c's plus one; L_c's links redirected to L_t; L_c deleted.
         sig.weight += prev.weight + 1
         self.on_graph_change(prev.id)
+        # Links to L_c not yet written (L_c -> L_t of this frame) must not reach the database:
+        # it applies a batch's deletions before its insertions, so they would outlive L_c.
+        self._batch.links = [link for link in self._batch.links if prev.id not in (link.from_id, link.to_id)]
         for link in self.graph.remove_node(prev.id):
             self._batch.deleted_links.append((link.from_id, link.to_id))
             if link.to_id == sig.id:

@@ -148,3 +148,16 @@ def test_bad_signature_threshold_follows_the_average(tmp_path):
     assert not memory.is_bad_signature(380)
     assert memory.is_bad_signature(60)  # < 0.25 x average
     assert memory.is_bad_signature(0)
+
+
+def test_merged_location_leaves_no_link_in_the_database(tmp_path, descriptors):
+    memory = make_memory(tmp_path)
+    view = descriptors()
+    add(memory, 1, descriptors())
+    add(memory, 2, view)
+    assert add(memory, 3, view) == 2  # 2 -> 3 was written in the batch that deletes 2
+    stored = {(link.from_id, link.to_id) for link in memory.db.load_links()}
+    nodes = set(memory.db.load_nodes())
+    assert nodes == {1, 3}
+    assert all(a in nodes and b in nodes for a, b in stored)
+    assert stored in ({(1, 3)}, {(3, 1)})
