@@ -1,0 +1,335 @@
+"""Multi-session graph SLAM on the simulated building (issue 4 and 6 benchmarks; 2014 §III).
+
+Parts (``--parts``, default all):
+
+* ``multi`` (experiment 2): the sessions' bags one after the other through ``map``'s code path
+  (BagDataset -> one Rtabmap, memory kept, T_time from the config = 0.7 s), then ``export``:
+  frames/s, max and p95 pTime, nodes, WM / local map size per session at the end, intra /
+  inter-session loop closures, components after export, ATE RMSE of ``poses.txt`` against
+  ``ground_truth.txt`` after ONE rigid alignment for all sessions, false loop closures (ground
+  truth of the two nodes > 1 m or 30 deg apart), per-step time medians;
+* ``independent`` (experiment 1): each session alone (memory cleared), ATE per session;
+* ``no_time_limit``: ``multi`` with T_time = 0 (every node stays in WM).
+
+The baseline measured in the same run is odometry alone: the ATE of the raw odometry poses (each
+session aligned on its own, which favours the baseline). Paper numbers (AZIMUT-3, 5 sessions,
+750 m, 2074 nodes) are printed next to ours.
+
+Usage: ``python bench/bench_slam.py [--quick] [--data DIR] [--parts multi,independent,no_time_limit]``.
+``--data`` defaults to bench/data/sim5 (``--quick``: bench/data/sim2_small), simulated when missing.
+Writes ``bench/results/slam.json`` (``slam_quick.json`` with ``--quick``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.params import Params, default_config_path
+from rtabmap_ros2.core.rtabmap import TIMING_KEYS, Rtabmap
+from rtabmap_ros2.io.bag import BagDataset
+from rtabmap_ros2.io.cmd_map import map_datasets
+from rtabmap_ros2.io.export import export_global_map
+from rtabmap_ros2.io.trajectory import Trajectory, associate, ate, read_tum
+
+REPO = Path(__file__).resolve().parents[1]
+# A loop closure is false when the ground-truth poses of its nodes are farther apart than this.
+FALSE_LOOP_DISTANCE_M = 1.0
+FALSE_LOOP_ANGLE_RAD = np.deg2rad(30.0)
+# A loop closure link is wrong when its transform is farther than this from the ground truth's.
+WRONG_LINK_DISTANCE_M = 0.5
+WRONG_LINK_ANGLE_RAD = np.deg2rad(10.0)
+PAPER = {
+    "multi": {"nodes": 2074, "wm_size": 330, "wm_per_session": [107, 12, 27, 28, 156], "local_map_size": 173,
+              "local_map_per_session": [4, 15, 6, 0, 148], "loop_intra": 188, "loop_inter": 258,
+              "max_ptime_ms": "< 700 (T)", "components": 1},
+    "no_time_limit": {"loop_intra": 193, "loop_inter": 387, "max_ptime_ms": "> 1000 (R)"},
+}
+
+
+def ensure_data(data: Path, quick: bool) -> Path:
+    """Simulated bags in ``data`` (generated with ``rtabmap-ros2 simulate`` if missing)."""
+    if not (data / "ground_truth.txt").is_file():
+        cmd = [sys.executable, "-m", "rtabmap_ros2.io.cli", "simulate", "--out", str(data)] + (["--small"] if quick else [])
+        print("simulating:", " ".join(cmd), flush=True)
+        subprocess.run(cmd, check=True)
+    return data
+
+
+def bags_of(data: Path) -> list[Path]:
+    return sorted(data.glob("session_*"), key=lambda p: int(p.name.split("_")[1]))
+
+
+def _gt_lookup(gt: Trajectory, stamps_ns: list[int]) -> dict[int, np.ndarray]:
+    ia, ib = associate(np.asarray(stamps_ns, np.int64), gt.stamps_ns)
+    return {int(stamps_ns[i]): gt.poses[j] for i, j in zip(ia, ib)}
+
+
+def false_loop_closures(rows: list[dict], gt: Trajectory, gmap) -> dict:
+    """False loop closures, two ways.
+
+    ``far_apart`` (the issue's criterion): accepted loop closures (per-frame statistics) whose
+    nodes' ground-truth poses are more than 1 m or 30 deg apart. ``wrong_transform``: loop
+    closure links of the final database (kept or rejected by the global optimisation) whose
+    transform differs from the ground-truth relative pose by more than 0.5 m or 10 deg, i.e.
+    links that would bend the map; a far-apart pair can be a correct registration (two views of
+    one wall from 35 deg apart).
+    """
+    stamps = sorted({r["stamp_ns"] for r in rows} | {r["old_stamp_ns"] for r in rows})
+    G = _gt_lookup(gt, stamps)
+    far = []
+    for r in rows:
+        a, b = G.get(r["old_stamp_ns"]), G.get(r["stamp_ns"])
+        if a is None or b is None:
+            continue
+        rel = transforms.inverse(a) @ b
+        if np.linalg.norm(rel[:3, 3]) > FALSE_LOOP_DISTANCE_M or transforms.rotation_angle(rel) > FALSE_LOOP_ANGLE_RAD:
+            far.append({**r, "gt_distance_m": round(float(np.linalg.norm(rel[:3, 3])), 3),
+                        "gt_angle_deg": round(float(np.degrees(transforms.rotation_angle(rel))), 1)})
+    Gn = _gt_lookup(gt, [gmap.stamps_ns[n] for n in gmap.poses])
+    wrong = []
+    for link, kept in [(l, True) for l in gmap.links] + [(l, False) for l in gmap.rejected]:
+        if not link.type.is_loop_closure:
+            continue
+        a, b = Gn.get(gmap.stamps_ns[link.from_id]), Gn.get(gmap.stamps_ns[link.to_id])
+        if a is None or b is None:
+            continue
+        E = transforms.inverse(transforms.inverse(a) @ b) @ link.T_from_to
+        if np.linalg.norm(E[:2, 3]) > WRONG_LINK_DISTANCE_M or abs(transforms.yaw_of(E)) > WRONG_LINK_ANGLE_RAD:
+            wrong.append({"from_id": link.from_id, "to_id": link.to_id, "type": link.type.value, "kept": kept,
+                          "error_m": round(float(np.linalg.norm(E[:2, 3])), 3),
+                          "error_deg": round(float(np.degrees(abs(transforms.yaw_of(E)))), 1)})
+    return {"far_apart": len(far), "checked": len(rows), "far_apart_list": far[:20],
+            "wrong_transform": len(wrong), "wrong_transform_kept": sum(w["kept"] for w in wrong),
+            "wrong_transform_list": wrong[:20]}
+
+
+def link_errors(gmap, gt: Trajectory) -> dict:
+    """Median / max error of each link type's transform against the ground truth."""
+    G = _gt_lookup(gt, [gmap.stamps_ns[n] for n in gmap.poses])
+    out = {}
+    for kind in ("neighbor", "loop_intra", "loop_inter"):
+        t_err, r_err = [], []
+        for link in gmap.links:
+            if link.type.value != kind:
+                continue
+            a, b = G.get(gmap.stamps_ns[link.from_id]), G.get(gmap.stamps_ns[link.to_id])
+            if a is None or b is None:
+                continue
+            E = transforms.inverse(transforms.inverse(a) @ b) @ link.T_from_to
+            t_err.append(float(np.linalg.norm(E[:2, 3])))
+            r_err.append(float(np.degrees(abs(transforms.yaw_of(E)))))
+        if t_err:
+            out[kind] = {"n": len(t_err), "median_m": float(np.median(t_err)), "max_m": float(np.max(t_err)),
+                         "median_deg": float(np.median(r_err)), "max_deg": float(np.max(r_err))}
+    return out
+
+
+def odometry_ate(gmap, gt: Trajectory) -> dict:
+    """Baseline: raw odometry, each session aligned on its own (ATE RMSE over all nodes)."""
+    sq, n = 0.0, 0
+    per = {}
+    for m in sorted(set(gmap.map_ids.values())):
+        ids = sorted(i for i in gmap.odom_poses if gmap.map_ids[i] == m)
+        if len(ids) < 3:
+            continue
+        est = Trajectory(np.array([gmap.stamps_ns[i] for i in ids]), np.stack([gmap.odom_poses[i] for i in ids]))
+        r = ate(est, gt)
+        per[m] = r.rmse_m
+        sq += float(np.sum(r.errors_m ** 2))
+        n += r.matched
+    return {"rmse_m": float(np.sqrt(sq / max(n, 1))), "per_session_m": per}
+
+
+def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_dir: Path, label: str) -> dict:
+    """Map ``bags`` in one memory, export, evaluate."""
+    stats_rows: list[dict] = []
+    loops: list[dict] = []
+    node_stamp: dict[int, int] = {}
+
+    def on_stats(s) -> None:
+        stats_rows.append(s.to_dict())
+        if s.location_id:
+            node_stamp[s.location_id] = s.stamp_ns
+        if s.loop_closure_id:
+            loops.append({"stamp_ns": s.stamp_ns, "location_id": s.location_id, "old_id": s.loop_closure_id,
+                          "old_stamp_ns": node_stamp.get(s.loop_closure_id, -1), "type": s.loop_closure_type})
+
+    datasets = [(b.name, BagDataset(b, sync=params.sync)) for b in bags]
+    t0 = time.perf_counter()
+    with Rtabmap(params, db, delete_existing=True) as rtabmap:
+        sessions = map_datasets(rtabmap, datasets, progress=False, on_statistics=on_stats,
+                                print_line=lambda line: print(f"  [{label}] {line}", flush=True))
+        local = rtabmap.local_map()
+        rtabmap.flush()
+    elapsed = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    summary = export_global_map(db, out_dir, params)
+    export_s = time.perf_counter() - t1
+    from rtabmap_ros2.core.global_map import load_global_map
+
+    gmap = load_global_map(db, params)
+    est = read_tum(out_dir / "poses.txt")
+    result_ate = ate(est, gt)
+    ptime = np.array([r["process_time_ms"] for r in stats_rows])
+    wm_per_session: dict[int, int] = {}
+    for n, m in gmap.map_ids.items():
+        wm_per_session[m] = wm_per_session.get(m, 0) + int(gmap.in_wm[n])
+    local_per_session: dict[int, int] = {}
+    for m in local.map_ids.values():
+        local_per_session[m] = local_per_session.get(m, 0) + 1
+    per_session_ate = {}
+    for m in sorted(set(gmap.map_ids.values())):
+        ids = sorted(i for i in gmap.poses if gmap.map_ids[i] == m)
+        if len(ids) >= 3:
+            per_session_ate[m] = round(ate(Trajectory(np.array([gmap.stamps_ns[i] for i in ids]),
+                                                      np.stack([gmap.poses[i] for i in ids])), gt).rmse_m, 4)
+    return {
+        "frames": len(stats_rows), "elapsed_s": round(elapsed, 1),
+        "frames_per_s": round(len(stats_rows) / elapsed, 3),
+        "ptime_ms": {"median": float(np.median(ptime)), "p95": float(np.percentile(ptime, 95)),
+                     "max": float(ptime.max()),
+                     "over_T": int(np.sum(ptime > params.memory.time_threshold_ms))
+                     if params.memory.time_threshold_ms > 0 else None},
+        "time_medians_ms": {k: float(np.median([r[f"time_{k}_ms"] for r in stats_rows])) for k in TIMING_KEYS},
+        "time_p95_ms": {k: float(np.percentile([r[f"time_{k}_ms"] for r in stats_rows], 95)) for k in TIMING_KEYS},
+        "sessions": [{"map_id": s.map_id, "source": s.source, "frames": s.frames, "nodes": s.nodes,
+                      "loop_intra": s.loop_intra, "loop_inter": s.loop_inter, "rejected": s.rejected,
+                      "max_ptime_ms": round(s.max_process_time_ms, 1),
+                      "p95_ptime_ms": round(float(np.percentile(s.process_times_ms, 95)), 1),
+                      "wm_size_end": s.wm_size} for s in sessions],
+        "nodes": summary["nodes"], "wm_size": summary["nodes_in_wm"],
+        "wm_per_session": [wm_per_session.get(m, 0) for m in sorted(wm_per_session)],
+        "local_map_size": len(local.poses),
+        "local_map_per_session": [local_per_session.get(m, 0) for m in sorted(wm_per_session)],
+        "loop_intra": sum(s.loop_intra for s in sessions), "loop_inter": sum(s.loop_inter for s in sessions),
+        "links_by_type": summary["links_by_type"],
+        "rejected_by_global_optimisation": len(summary["rejected_loop_closures"]),
+        "components": summary["components"], "component_sizes": summary["component_sizes"][:10],
+        "ate": result_ate.to_dict(), "ate_per_session_m": per_session_ate,
+        "odometry_ate": odometry_ate(gmap, gt),
+        "false_loop_closures": false_loop_closures(loops, gt, gmap),
+        "link_errors": link_errors(gmap, gt),
+        "export_s": round(export_s, 1), "export_time_s": summary["time_s"],
+        "optimization": summary["optimization"],
+    }
+
+
+def run_independent(bags: list[Path], tmp: Path, params: Params, gt: Trajectory, out_root: Path) -> dict:
+    """Experiment 1: each session with its own memory."""
+    out = {}
+    for b in bags:
+        out[b.name] = run_mapping([b], tmp / f"{b.name}.db", params, gt, out_root / f"independent_{b.name}",
+                                  f"independent {b.name}")
+    return out
+
+
+def print_table(results: dict) -> None:
+    # (label, key path in our results, key in PAPER[part])
+    rows = [("frames/s of map", ("frames_per_s",), None), ("pTime median (ms)", ("ptime_ms", "median"), None),
+            ("pTime p95 (ms)", ("ptime_ms", "p95"), None), ("pTime max (ms)", ("ptime_ms", "max"), "max_ptime_ms"),
+            ("frames over T", ("ptime_ms", "over_T"), None), ("nodes", ("nodes",), "nodes"),
+            ("WM size at end", ("wm_size",), "wm_size"), ("WM per session", ("wm_per_session",), "wm_per_session"),
+            ("local map size", ("local_map_size",), "local_map_size"),
+            ("local map per session", ("local_map_per_session",), "local_map_per_session"),
+            ("loop closures intra", ("loop_intra",), "loop_intra"),
+            ("loop closures inter", ("loop_inter",), "loop_inter"),
+            ("components after export", ("components",), "components"),
+            ("ATE RMSE (m), 1 alignment", ("ate", "rmse_m"), None), ("ATE max (m)", ("ate", "max_m"), None),
+            ("odometry-only ATE (m)", ("odometry_ate", "rmse_m"), None),
+            ("false loop closures (>1 m/30 deg)", ("false_loop_closures", "far_apart"), None),
+            ("wrong loop closure links (kept)", ("false_loop_closures", "wrong_transform_kept"), None),
+            ("rejected by global optimisation", ("rejected_by_global_optimisation",), None)]
+
+    def get(d, path):
+        for k in path:
+            d = d.get(k) if isinstance(d, dict) else None
+        return d
+
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.3f}" if abs(v) < 10 else f"{v:.0f}"
+        if isinstance(v, list):
+            return ",".join(str(x) for x in v)
+        return "" if v is None else str(v)
+
+    parts = [p for p in ("multi", "no_time_limit") if p in results]
+    print(f"{'':34s}" + "".join(f"{p:>24s}{'paper':>22s}" for p in parts))
+    for label, path, paper_key in rows:
+        line = f"{label:34s}"
+        for p in parts:
+            paper = PAPER.get(p, {}).get(paper_key, "") if paper_key else ""
+            line += f"{fmt(get(results[p], path)):>24s}{fmt(paper):>22s}"
+        print(line)
+    for p in parts:
+        print(f"{p}: per-step median ms:", {k: round(v, 1) for k, v in results[p]["time_medians_ms"].items()})
+    if "independent" in results:
+        print("independent sessions (experiment 1):")
+        for name, r in results["independent"].items():
+            print(f"  {name}: {r['frames']} frames, {r['frames_per_s']:.2f} frames/s, pTime max {r['ptime_ms']['max']:.0f} "
+                  f"ms p95 {r['ptime_ms']['p95']:.0f} ms, nodes {r['nodes']}, WM {r['wm_size']}, loops intra "
+                  f"{r['loop_intra']}, ATE {r['ate']['rmse_m']:.3f} m (odometry {r['odometry_ate']['rmse_m']:.3f} m), "
+                  f"far apart {r['false_loop_closures']['far_apart']}, wrong kept {r['false_loop_closures']['wrong_transform_kept']}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="the 2 small sessions")
+    parser.add_argument("--data", type=Path, default=None, help="simulated bags + ground_truth.txt")
+    parser.add_argument("--parts", default="multi,independent,no_time_limit")
+    parser.add_argument("--config", default=None, help="parameter file (default: config/rtabmap.yaml)")
+    parser.add_argument("--set", action="append", default=[], dest="overrides", metavar="NAME=VALUE")
+    parser.add_argument("--out", type=Path, default=None, help="results JSON")
+    parser.add_argument("--workdir", type=Path, default=None, help="databases and exports (default: a temp dir)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    data = args.data or REPO / "bench" / "data" / ("sim2_small" if args.quick else "sim5")
+    ensure_data(data, args.quick)
+    params = Params.from_yaml(args.config or default_config_path()).with_overrides(args.overrides)
+    gt = read_tum(data / "ground_truth.txt")
+    bags = bags_of(data)
+    parts = args.parts.split(",")
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_slam_"))
+    work.mkdir(parents=True, exist_ok=True)
+    results: dict = {"data": str(data), "bags": [b.name for b in bags], "params_overrides": args.overrides,
+                     "machine": {"cpus": os.cpu_count(), "load_avg_start": os.getloadavg()}, "paper": PAPER}
+    t0 = time.perf_counter()
+    out = args.out or REPO / "bench" / "results" / ("slam_quick.json" if args.quick else "slam.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save() -> None:
+        results["machine"]["load_avg_end"] = os.getloadavg()
+        results["elapsed_s"] = round(time.perf_counter() - t0, 1)
+        out.write_text(json.dumps(results, indent=2, default=float) + "\n")
+
+    results["workdir"] = str(work)
+    if "multi" in parts:
+        print("== multi-session (experiment 2), T_time =", params.memory.time_threshold_ms, "ms", flush=True)
+        results["multi"] = run_mapping(bags, work / "multi.db", params, gt, work / "multi_export", "multi")
+        save()
+    if "no_time_limit" in parts:
+        print("== multi-session without T_time", flush=True)
+        results["no_time_limit"] = run_mapping(bags, work / "no_time.db", params.with_value("memory.time_threshold_ms", 0.0),
+                                               gt, work / "no_time_export", "no T")
+        save()
+    if "independent" in parts:
+        print("== independent sessions (experiment 1)", flush=True)
+        results["independent"] = run_independent(bags, work, params, gt, work)
+    save()
+    print_table(results)
+    print(f"wrote {out} ({results['elapsed_s']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
