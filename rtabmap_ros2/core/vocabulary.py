@@ -15,8 +15,24 @@ step. Here the index is incremental (``bench/bench_vocabulary.py`` measured the 
   and retrained only when the vocabulary has grown by ``ivf_retrain_growth`` since the last
   training; between trainings words are added to / removed from the lists incrementally. Once
   built, the IVF stays in use even if removals shrink the vocabulary below ``ivf_min_words``.
-  Training runs in the frame that crosses the threshold and blocks it (about 0.5 s at 20 k words,
-  a few seconds at 200 k with 2 sqrt(n) lists; see ``IVF_LISTS_PER_SQRT``).
+
+IVF (re)builds run off the frame's critical path (``background_training=True``, the default):
+training the coarse quantiser takes 0.5-1.5 s at 20-80 k ORB words and several seconds at
+200-320 k, far above T_time (2013 §III-F). The frame that crosses the threshold only copies the
+words (a snapshot: ~1 ms for 80 k ORB words); a daemon thread trains the quantiser on a sample of
+the snapshot and adds all its words to a private new index (faiss releases the GIL; the thread
+uses ``BUILD_THREADS`` OpenMP threads so the frame loop keeps a core). Meanwhile the current index
+(flat, or the previous IVF) keeps serving queries and receiving adds/removes, which are also
+logged. The first call after the build finished replays the log into the new index (O(changes
+since the snapshot)) and swaps it in. Only the main thread calls the public methods; the thread
+touches nothing but its snapshot and its result. ``background_training=False`` builds in the
+calling frame (deterministic tests, benchmarks of the build itself); both modes end with the same
+index content once the swap happened. :meth:`join_training` waits for a pending build and swaps it
+in; :meth:`close` waits for it and discards it.
+
+The frame's own faiss calls run with ``SEARCH_THREADS`` OpenMP threads (set around each call and
+restored): with faiss's default team over all cores of a shared machine, frames after the switch
+took 0.5-1.4 s instead of ~10-60 ms (bench_vocabulary.py growth run).
 
 Distances: Hamming (bits) for binary descriptors, Euclidean for float ones (faiss returns squared
 L2: the square root is taken before the ratio test).
@@ -32,7 +48,11 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
+import time
 from collections import defaultdict
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from typing import Iterable
 
 import faiss
@@ -58,6 +78,33 @@ IVF_MIN_POINTS_PER_LIST = 39
 # Seed of the training sample draw (deterministic vocabularies).
 IVF_TRAIN_SEED = 1234
 NEAREST_NEIGHBOURS = 2
+# OpenMP threads of a background IVF build (faiss's setting is per calling thread): one, so that on
+# a 2-core machine the frame loop keeps the other core (bench_vocabulary.py, growth run).
+BUILD_THREADS = 1
+# OpenMP threads of the frame's faiss calls (search, add, replay), set around each call and restored
+# (0: leave the caller's setting). bench_vocabulary.py growth run, 2 cores shared with other jobs:
+# with faiss's default (all cores) the OpenMP team waits for a descheduled thread, and while a
+# background build runs, p99 quantize time went from 80 ms to 1.4 s; one thread avoids that.
+SEARCH_THREADS = 1
+
+
+def _remove_ids(index, ids: np.ndarray) -> None:
+    """Remove (N,) int64 contiguous ids from a faiss IVF index with a hash-table direct map."""
+    index.remove_ids(faiss.IDSelectorArray(ids.size, faiss.swig_ptr(ids)))
+
+
+@contextmanager
+def _omp_threads(n_threads: int):
+    """Run faiss calls of this thread with n_threads OpenMP threads (0: unchanged), then restore."""
+    if n_threads <= 0:
+        yield
+        return
+    previous = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(n_threads)
+    try:
+        yield
+    finally:
+        faiss.omp_set_num_threads(previous)
 
 
 def _as_ids(word_ids: Iterable[int] | np.ndarray) -> np.ndarray:
@@ -65,10 +112,81 @@ def _as_ids(word_ids: Iterable[int] | np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(word_ids, dtype=np.int64).reshape(-1))
 
 
+def _ivf_lists(n_words: int) -> int:
+    """Number of IVF lists for a vocabulary of n_words (``IVF_LISTS_PER_SQRT`` sqrt(n))."""
+    return max(1, min(int(round(IVF_LISTS_PER_SQRT * math.sqrt(n_words))), n_words // IVF_MIN_POINTS_PER_LIST))
+
+
+def _build_ivf(words: np.ndarray, ids: np.ndarray, binary: bool, n_lists: int, nprobe: int):
+    """A new IVF index holding the given words: k-means on a sample of them, then add them all.
+
+    Touches nothing but its arguments (it runs in the background build thread).
+
+    Args:
+        words: (N,D) uint8 (binary, D bytes) or float32 descriptors; not modified.
+        ids: (N,) int64 word ids of the rows.
+        binary: Hamming (IndexBinaryIVF) or L2 (IndexIVFFlat).
+        n_lists: number of inverted lists (k-means centroids).
+        nprobe: lists visited per query.
+
+    Returns:
+        ``(index, n_train)``: the faiss index and the number of training points used.
+    """
+    n_words, dim = words.shape
+    n_train = min(n_words, IVF_TRAIN_POINTS_PER_LIST * n_lists)
+    sample = np.random.default_rng(IVF_TRAIN_SEED).choice(n_words, n_train, replace=False)
+    sample.sort()
+    training = np.ascontiguousarray(words[sample])
+    if binary:
+        bits = 8 * dim
+        index = faiss.IndexBinaryIVF(faiss.IndexBinaryFlat(bits), bits, n_lists)
+    else:
+        index = faiss.IndexIVFFlat(faiss.IndexFlatL2(dim), dim, n_lists)
+    index.train(training)
+    # Hash-table direct map: remove_ids in O(removed) instead of scanning every list.
+    index.set_direct_map_type(faiss.DirectMap.Hashtable)
+    index.nprobe = nprobe
+    index.add_with_ids(words, ids)
+    return index, n_train
+
+
+@dataclass(eq=False)
+class _IvfBuild:
+    """One IVF (re)build: its snapshot size, the changes made since the snapshot, its result.
+
+    The build thread writes ``index``/``n_train``/``error``/``seconds`` and then sets ``done``;
+    the main thread reads them only once ``done`` is set (the Event is the lock of the handoff).
+    ``log`` belongs to the main thread: ("add", ids, descriptors) / ("remove", ids, None) in order.
+    """
+
+    size: int
+    n_lists: int
+    done: threading.Event = field(default_factory=threading.Event)
+    log: list = field(default_factory=list)
+    thread: threading.Thread | None = None
+    index: object = None
+    n_train: int = 0
+    error: BaseException | None = None
+    seconds: float = 0.0
+
+    def run(self, words: np.ndarray, ids: np.ndarray, binary: bool, nprobe: int) -> None:
+        """Build the index from the snapshot (thread target; never raises, stores the error)."""
+        start = time.perf_counter()
+        try:
+            faiss.omp_set_num_threads(BUILD_THREADS)  # this thread only (OpenMP per-thread setting)
+            self.index, self.n_train = _build_ivf(words, ids, binary, self.n_lists, nprobe)
+        except BaseException as error:  # noqa: BLE001 - handed to the main thread, re-raised there
+            self.error = error
+        finally:
+            self.seconds = time.perf_counter() - start
+            self.done.set()
+
+
 class Vocabulary:
     """Words (descriptors) with int64 ids, a nearest-neighbour index and the inverted index."""
 
-    def __init__(self, params: VocabularyParams, binary: bool, next_word_id: int = 1):
+    def __init__(self, params: VocabularyParams, binary: bool, next_word_id: int = 1, *,
+                 background_training: bool = True):
         """Empty vocabulary.
 
         Args:
@@ -76,6 +194,8 @@ class Vocabulary:
             binary: True for binary descriptors (uint8 rows, Hamming), False for float32 (L2).
             next_word_id: first id given to a new word (ids are never reused: pass the database's
                 largest word id + 1 when continuing a map).
+            background_training: build IVF indexes in a background thread (True) or in the
+                frame that triggers them (False: deterministic, blocks that frame).
         """
         if next_word_id < 1:
             raise ValueError(f"next_word_id={next_word_id} is invalid: word ids start at 1")
@@ -92,6 +212,8 @@ class Vocabulary:
         # IVF index (None while the flat index is used) and the size it was trained at.
         self._ivf = None
         self._ivf_trained_size = 0
+        self.background_training = bool(background_training)
+        self._build: _IvfBuild | None = None  # pending background (re)build
         # Inverted index: word id -> {location id: occurrences of the word in the location}.
         self._references: dict[int, dict[int, int]] = {}
 
@@ -127,6 +249,7 @@ class Vocabulary:
             new word was created.
         """
         descriptors = self._check_descriptors(descriptors)
+        self._poll_build()
         word_ids = self.match(descriptors)
         is_new = word_ids < 0
         n_new = int(is_new.sum())
@@ -148,6 +271,7 @@ class Vocabulary:
             (N,) int64 word ids, -1 where the NNDR test failed (or fewer than two words exist).
         """
         descriptors = self._check_descriptors(descriptors)
+        self._poll_build()
         n = descriptors.shape[0]
         result = np.full(n, -1, np.int64)
         if n == 0 or self._count < NEAREST_NEIGHBOURS:
@@ -175,6 +299,7 @@ class Vocabulary:
             raise ValueError(f"add_words got {ids.shape[0]} ids for {descriptors.shape[0]} descriptors")
         if ids.size == 0:
             return
+        self._poll_build()
         if ids.min() < 1:
             raise ValueError(f"word id {int(ids.min())} is invalid: word ids are >= 1")
         present = [int(w) for w in ids if int(w) in self._slot]
@@ -198,9 +323,11 @@ class Vocabulary:
         missing = [int(w) for w in ids if int(w) not in self._slot]
         if missing:
             raise KeyError(f"remove_words: words not in the vocabulary: {missing[:10]}")
+        self._poll_build()
         if self._ivf is not None:
-            selector = faiss.IDSelectorArray(ids.size, faiss.swig_ptr(ids))
-            self._ivf.remove_ids(selector)
+            _remove_ids(self._ivf, ids)
+        if self._build is not None:
+            self._build.log.append(("remove", ids, None))
         for word in ids.tolist():
             # Move the last row into the freed slot.
             slot = self._slot.pop(word)
@@ -225,6 +352,25 @@ class Vocabulary:
         except KeyError as error:
             raise KeyError(f"descriptors_of: word {error.args[0]} is not in the vocabulary") from None
         return self._descriptors[slots].copy()
+
+    @property
+    def training(self) -> bool:
+        """True while a background IVF build is pending (not yet swapped in)."""
+        return self._build is not None
+
+    def join_training(self) -> None:
+        """Wait for a pending background IVF build and swap it in (no-op when none is pending)."""
+        self._poll_build(wait=True)
+
+    def close(self) -> None:
+        """Wait for a pending background IVF build and discard it (idempotent).
+
+        The vocabulary stays usable; a later growth starts a new build. Without close() the
+        build thread (a daemon) finishes on its own and the vocabulary is garbage-collectable.
+        """
+        build, self._build = self._build, None
+        if build is not None and build.thread is not None:
+            build.thread.join()
 
     # ------------------------------------------------------- inverted index
     def add_references(self, location_id: int, word_ids: np.ndarray) -> None:
@@ -323,7 +469,10 @@ class Vocabulary:
         self._slot.update(zip(ids.tolist(), range(start, needed)))
         self._count = needed
         if self._ivf is not None:
-            self._ivf.add_with_ids(descriptors, ids)
+            with _omp_threads(SEARCH_THREADS):
+                self._ivf.add_with_ids(descriptors, ids)
+        if self._build is not None:
+            self._build.log.append(("add", ids.copy(), descriptors.copy()))
         self._maybe_train_ivf()
 
     def _ivf_threshold(self) -> int | None:
@@ -335,47 +484,70 @@ class Vocabulary:
         return self.params.ivf_min_words
 
     def _maybe_train_ivf(self) -> None:
-        """Build the IVF once big enough; retrain it after ``ivf_retrain_growth`` growth."""
+        """Build the IVF once big enough; rebuild it after ``ivf_retrain_growth`` growth."""
         threshold = self._ivf_threshold()
-        if threshold is None or self._count < threshold:
+        if threshold is None or self._count < threshold or self._build is not None:
             return
         if self._ivf is not None and self._count < self.params.ivf_retrain_growth * self._ivf_trained_size:
             return
-        self._train_ivf()
+        self._start_build()
 
-    def _train_ivf(self) -> None:
-        """(Re)build the IVF: k-means on (a sample of) the current words, then add them all."""
-        words = self._descriptors[: self._count]
-        ids = self._ids[: self._count]
-        n_lists = max(1, min(int(round(IVF_LISTS_PER_SQRT * math.sqrt(self._count))),
-                             self._count // IVF_MIN_POINTS_PER_LIST))
-        n_train = min(self._count, IVF_TRAIN_POINTS_PER_LIST * n_lists)
-        sample = np.random.default_rng(IVF_TRAIN_SEED).choice(self._count, n_train, replace=False)
-        sample.sort()
-        training = np.ascontiguousarray(words[sample])
-        if self.binary:
-            bits = 8 * self._dim
-            index = faiss.IndexBinaryIVF(faiss.IndexBinaryFlat(bits), bits, n_lists)
-        else:
-            index = faiss.IndexIVFFlat(faiss.IndexFlatL2(self._dim), self._dim, n_lists)
-        index.train(training)
-        # Hash-table direct map: remove_ids in O(removed) instead of scanning every list.
-        index.set_direct_map_type(faiss.DirectMap.Hashtable)
-        index.nprobe = self.params.ivf_nprobe
-        index.add_with_ids(words, ids)
-        logger.info("vocabulary: IVF trained on %d of %d words, %d lists", n_train, self._count, n_lists)
+    def _start_build(self) -> None:
+        """Snapshot the words and (re)build the IVF from it, in a thread or right here."""
+        # The snapshot is private to the build: the main thread keeps moving rows of the buffer.
+        words = self._descriptors[: self._count].copy()
+        ids = self._ids[: self._count].copy()
+        build = _IvfBuild(size=self._count, n_lists=_ivf_lists(self._count))
+        self._build = build
+        if not self.background_training:
+            build.run(words, ids, self.binary, self.params.ivf_nprobe)
+            self._poll_build()
+            return
+        build.thread = threading.Thread(target=build.run, args=(words, ids, self.binary, self.params.ivf_nprobe),
+                                        name="vocabulary-ivf-build", daemon=True)
+        build.thread.start()
+        logger.info("vocabulary: IVF build of %d words (%d lists) started in the background",
+                    build.size, build.n_lists)
+
+    def _poll_build(self, wait: bool = False) -> None:
+        """Swap in the finished background build (main thread): replay the logged changes first."""
+        build = self._build
+        if build is None or not (wait or build.done.is_set()):
+            return
+        if build.thread is not None:
+            build.thread.join()
+        self._build = None
+        if build.error is not None:
+            raise build.error
+        start = time.perf_counter()
+        index = build.index
+        # Changes made since the snapshot, in order: the new index ends up holding the current words.
+        with _omp_threads(SEARCH_THREADS):
+            for kind, ids, descriptors in build.log:
+                if kind == "add":
+                    index.add_with_ids(descriptors, ids)
+                else:
+                    _remove_ids(index, ids)
+        if index.ntotal != self._count:
+            raise RuntimeError(f"vocabulary: the rebuilt IVF holds {index.ntotal} words, the vocabulary "
+                               f"{self._count}: a change was lost (report this bug)")
         self._ivf = index
-        self._ivf_trained_size = self._count
+        self._ivf_trained_size = build.size
+        logger.info("vocabulary: IVF trained on %d of %d words, %d lists, in %.2f s; %d changes replayed "
+                    "in %.1f ms", build.n_train, build.size, build.n_lists, build.seconds, len(build.log),
+                    1e3 * (time.perf_counter() - start))
 
     def _search(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """2-NN distances (N,2) and word ids (N,2) (-1 where not found)."""
         if self._ivf is not None:
-            distances, ids = self._ivf.search(descriptors, NEAREST_NEIGHBOURS)
+            with _omp_threads(SEARCH_THREADS):
+                distances, ids = self._ivf.search(descriptors, NEAREST_NEIGHBOURS)
             return distances.astype(np.float32), ids
         words = self._descriptors[: self._count]
-        if self.binary:
-            distances, slots = faiss.knn_hamming(descriptors, words, NEAREST_NEIGHBOURS)
-        else:
-            distances, slots = faiss.knn(descriptors, words, NEAREST_NEIGHBOURS)
+        with _omp_threads(SEARCH_THREADS):
+            if self.binary:
+                distances, slots = faiss.knn_hamming(descriptors, words, NEAREST_NEIGHBOURS)
+            else:
+                distances, slots = faiss.knn(descriptors, words, NEAREST_NEIGHBOURS)
         ids = np.where(slots >= 0, self._ids[np.maximum(slots, 0)], -1)
         return distances.astype(np.float32), ids

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import gc
+import threading
+import weakref
 from collections import Counter
 
 import cv2
@@ -10,6 +13,7 @@ import pytest
 
 from rtabmap_ros2.core.features import FeatureExtractor
 from rtabmap_ros2.core.params import FeatureParams, VocabularyParams
+from rtabmap_ros2.core import vocabulary as vocabulary_module
 from rtabmap_ros2.core.vocabulary import Vocabulary
 from rtabmap_ros2.errors import SensorDataError
 
@@ -173,7 +177,7 @@ def test_ivf_agrees_with_flat_on_30k_words(rng):
     n_words, n_queries = 30_000, 800
     centres = random_binary(rng, n_words)
     flat = Vocabulary(VocabularyParams(index="flat"), binary=True)
-    ivf = Vocabulary(VocabularyParams(index="auto", ivf_min_words=20_000), binary=True)
+    ivf = Vocabulary(VocabularyParams(index="auto", ivf_min_words=20_000), binary=True, background_training=False)
     ids = np.arange(1, n_words + 1)
     # Words added in two steps, like a growing map: the IVF is built when the second crosses 20 k.
     flat.add_words(ids[:10_000], centres[:10_000])
@@ -193,6 +197,114 @@ def test_ivf_agrees_with_flat_on_30k_words(rng):
     assert not np.isin(ivf.match(centres[:100]), ids[:100]).any()
     ivf.add_words(ids[:100], centres[:100])
     assert np.mean(ivf.match(centres[:100]) == ids[:100]) > 0.9
+
+
+@pytest.fixture
+def gated_build(monkeypatch):
+    """Background IVF builds wait for ``gate.set()`` before returning (changes land during training).
+
+    Synchronous builds (in the test's thread) are not gated.
+    """
+    gate = threading.Event()
+    build = vocabulary_module._build_ivf
+
+    def waiting_build(*args, **kwargs):
+        result = build(*args, **kwargs)
+        if threading.current_thread() is not threading.main_thread():
+            assert gate.wait(30), "test never opened the gate"
+        return result
+    monkeypatch.setattr(vocabulary_module, "_build_ivf", waiting_build)
+    yield gate
+    gate.set()
+
+
+def changes_during_training(vocab: Vocabulary, centres: np.ndarray, ids: np.ndarray) -> None:
+    """The mapper's changes while an IVF build is pending: new words, transfers, retrievals."""
+    vocab.add_words(ids[4000:5000], centres[4000:5000])  # new words after the snapshot
+    vocab.remove_words(ids[:300])                        # transferred to LTM (in the snapshot)
+    vocab.remove_words(ids[4500:4700])                   # added after the snapshot, then removed
+    vocab.add_words(ids[100:200], centres[100:200])      # retrieved back with their ids
+    vocab.remove_words(ids[3900:4100])                   # straddles the snapshot
+
+
+def test_background_build_gives_same_decisions_as_synchronous(rng, gated_build):
+    """Adds/removes made while the IVF trains in the background all reach it; same decisions as sync."""
+    n_words = 5000
+    centres = random_binary(rng, n_words)
+    ids = np.arange(1, n_words + 1)
+    params = VocabularyParams(index="auto", ivf_min_words=4000)
+    sync = Vocabulary(params, binary=True, background_training=False)
+    background = Vocabulary(params, binary=True)
+    flat = Vocabulary(VocabularyParams(index="flat"), binary=True)
+    near = flip_bits(rng, centres, 20)
+    for vocab in (sync, background, flat):
+        vocab.add_words(ids[:4000], centres[:4000])  # crosses ivf_min_words: the build starts
+    assert sync.uses_ivf and not sync.training
+    assert background.training and not background.uses_ivf
+    # While it trains, the exact index serves queries: decisions equal the flat vocabulary's.
+    np.testing.assert_array_equal(background.match(near[:1000]), flat.match(near[:1000]))
+    for vocab in (sync, background, flat):
+        changes_during_training(vocab, centres, ids)
+    assert background.training, "the gated build cannot have been swapped in yet"
+    gated_build.set()
+    background.join_training()
+    assert background.uses_ivf and not background.training
+    # No lost or resurrected words: same word set as the exact vocabulary, all of them indexed.
+    assert set(background.word_ids().tolist()) == set(flat.word_ids().tolist())
+    assert background._ivf.ntotal == len(background) == len(sync) == len(flat)
+    # The same decisions as the synchronous build (same snapshot, same changes in the same order).
+    queries = np.concatenate([near, random_binary(rng, 500)])
+    decided = background.match(queries)
+    np.testing.assert_array_equal(decided, sync.match(queries))
+    assert np.mean(decided == flat.match(queries)) >= 0.97
+    gone = np.concatenate([ids[:100], ids[200:300], ids[4500:4700], ids[3900:4100]])
+    assert not np.isin(background.match(centres[gone - 1]), gone).any(), "a removed word came back"
+    kept = np.concatenate([ids[100:200], ids[4100:4500], ids[4700:5000]])
+    assert np.mean(background.match(centres[kept - 1]) == kept) > 0.95, "an added word was lost"
+
+
+def test_build_swapped_in_by_a_later_call(rng):
+    """Without join_training, a later call swaps the finished build in (no waiting on the frame)."""
+    vocab = Vocabulary(VocabularyParams(index="ivf"), binary=True)  # index=ivf: builds from 1 000 words
+    centres = random_binary(rng, 1500)
+    vocab.add_words(np.arange(1, 1501), centres)
+    vocab._build.done.wait(30)  # the thread finished; nothing swapped until the next call
+    assert not vocab.uses_ivf
+    assert vocab.match(centres[:10]).tolist() == list(range(1, 11))
+    assert vocab.uses_ivf and not vocab.training
+
+
+def test_close_and_garbage_collection_do_not_wait_for_training(rng, gated_build):
+    vocab = Vocabulary(VocabularyParams(index="ivf"), binary=True)
+    vocab.add_words(np.arange(1, 1501), random_binary(rng, 1500))
+    assert vocab.training
+    thread = vocab._build.thread
+    collected = weakref.ref(vocab)
+    del vocab
+    gc.collect()
+    assert collected() is None, "the build thread must not keep the vocabulary alive"
+    gated_build.set()
+    thread.join(30)
+    assert not thread.is_alive()
+    # close() waits for the pending build and discards it; the vocabulary stays usable.
+    vocab = Vocabulary(VocabularyParams(index="ivf"), binary=True)
+    vocab.add_words(np.arange(1, 1501), random_binary(rng, 1500))
+    vocab.close()
+    vocab.close()
+    assert not vocab.training and not vocab.uses_ivf and len(vocab) == 1500
+    assert vocab.quantize(random_binary(rng, 5))[1].all()
+
+
+def test_background_build_error_is_raised_in_the_main_thread(rng, monkeypatch):
+    def failing_build(*args, **kwargs):
+        raise MemoryError("no memory for k-means")
+    monkeypatch.setattr(vocabulary_module, "_build_ivf", failing_build)
+    vocab = Vocabulary(VocabularyParams(index="ivf"), binary=True)
+    vocab.add_words(np.arange(1, 1501), random_binary(rng, 1500))
+    vocab._build.thread.join(30)
+    with pytest.raises(MemoryError):
+        vocab.match(random_binary(rng, 3))
+    assert not vocab.training and not vocab.uses_ivf and len(vocab) == 1500
 
 
 def test_sift_end_to_end(shared_data):
