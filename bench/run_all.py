@@ -185,7 +185,11 @@ def write_summary(records: list[dict] | None = None) -> Path:
              f"({platform.platform()}, Python {platform.python_version()}, {os.cpu_count()} CPUs). "
              "Medians unless named otherwise; each topic's JSON file has every number.", ""]
     if records:
-        lines += ["## Runs", ""] + _table(
+        load = records[0].get("load_average_at_start")
+        lines += ["## Runs", ""]
+        if load is not None:
+            lines += [f"Load average (1 min) when the runs started: {load:.1f} on {os.cpu_count()} CPUs.", ""]
+        lines += _table(
             ["bench", "mode", "status", "wall (s)", "log"],
             [[r["topic"], r["mode"], r["status"], r["wall_s"], r["log"]] for r in records]) + [""]
     for path in sorted(RESULTS_DIR.glob("*.json")):
