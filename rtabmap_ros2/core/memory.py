@@ -351,6 +351,7 @@ class Memory:
         """Write what is pending and close the database."""
         self.commit()
         self.writer.join()
+        self.vocabulary.close()
         self.db.close()
 
 
