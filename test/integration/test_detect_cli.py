@@ -95,3 +95,26 @@ def test_ground_truth_of_another_size_is_a_clear_error(sequence_dir, tmp_path):
     result = detect(folder, "--out", tmp_path / "out", "--ground-truth", wrong)
     assert result.returncode == 2 and f"{N_IMAGES} images" in result.stderr
     assert not (tmp_path / "out" / "detections.csv").exists()
+
+
+def test_origin_policy_and_recall_at_full_precision():
+    import numpy as np
+
+    from rtabmap_ros2.io.evaluation import evaluate_rows, origins, pr_curve, recall_at_full_precision
+
+    # Image 5 revisits image 1; location 2 holds image 1's words (1 merged into 2), 3 merged into 4.
+    gt = np.zeros((6, 6), bool)
+    gt[4, 0] = gt[5, 0] = True
+    assert origins({1: 0, 2: 1, 3: 2, 4: 0}) == {1: 1, 2: 1, 3: 1, 4: 4}
+    rows = [dict(location_id=k, merged_id=m, loop_closure_id=lc, highest_hypothesis_id=h, highest_hypothesis_value=v)
+            for k, m, lc, h, v in [(1, 0, 0, 0, 0.0), (2, 1, 0, 0, 0.0), (3, 0, 0, 2, 0.05), (4, 3, 0, 2, 0.08),
+                                   (5, 0, 2, 2, 0.6), (6, 0, 4, 4, 0.3)]]
+    result = evaluate_rows(gt, rows)
+    assert result["origin"]["true_positives"] == 1 and result["origin"]["accepted"] == 2
+    assert result["strict"]["true_positives"] == 0  # GT[5, 2] is not set: only the origin is
+    assert result["origin"]["recall"] == 0.5
+    # Threshold 0.6 accepts only 5 -> 2 (right): recall 0.5 at 100 % precision.
+    assert result["origin"]["recall_at_100_precision"] == 0.5
+    assert result["origin"]["threshold_at_100_precision"] == 0.6
+    curve = pr_curve(gt, [r["highest_hypothesis_id"] for r in rows], [r["highest_hypothesis_value"] for r in rows])
+    assert recall_at_full_precision(curve) == (0.0, None)  # strict: nothing right
