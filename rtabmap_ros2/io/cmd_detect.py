@@ -135,8 +135,10 @@ def _plot_timing(rows: list[dict], time_threshold_ms: float, path: Path) -> None
     import matplotlib.pyplot as plt
 
     images = range(1, len(rows) + 1)
+    processed = [(k, float(r["process_time_ms"]) / 1000.0) for k, r in enumerate(rows, start=1)
+                 if r["status"] in (STATUS_OK, STATUS_BAD)]
     fig, ax = plt.subplots(figsize=(10, 4))
-    ax.plot(images, [float(r["process_time_ms"]) / 1000.0 for r in rows], ".", ms=2, color="tab:blue",
+    ax.plot([k for k, _ in processed], [t for _, t in processed], ".", ms=2, color="tab:blue",
             label="process time")
     if time_threshold_ms > 0:
         ax.axhline(time_threshold_ms / 1000.0, color="tab:red", lw=1, label=f"T_time = {time_threshold_ms / 1000:g} s")
