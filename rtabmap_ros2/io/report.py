@@ -59,6 +59,8 @@ FIGURES = ("process_time.png", "memory.png", "global_map.png", "sessions_y.png",
 LINK_COLORS = {LinkType.NEIGHBOR: "#1f4fd6", LinkType.LOOP_INTRA: "#e02020", LinkType.LOOP_INTER: "#10a010"}
 LINK_LABELS = {LinkType.NEIGHBOR: "neighbour links", LinkType.LOOP_INTRA: "intra-session loop closures",
                LinkType.LOOP_INTER: "inter-session loop closures"}
+# Session colours: none close to the links' blue, red and green.
+SESSION_COLORS = ("#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f", "#1b1b6b")
 # Occupancy grid grey levels (0 black .. 1 white): unknown, free, occupied.
 GRID_GREY = {"unknown": 0.82, "free": 1.0, "occupied": 0.1}
 DPI = 110
@@ -66,6 +68,8 @@ DPI = 110
 MAP_MARGIN_M = 4.0
 # Ground-truth stamps further apart than this (s) belong to different sessions (drawn apart).
 TRAJECTORY_GAP_S = 10.0
+# sessions_y.png: loop closure lines get alpha = this / count, within [0.25, 0.8].
+SESSION_LINKS_ALPHA_SCALE = 40.0
 # A detected loop closure is correct when the true poses of the frame and of the hypothesis are
 # this close. The simulator's loops.csv lists revisits within 1 m / 30 deg; the angle is wider
 # here because views 30-45 deg apart still overlap (measured: a RANSAC-verified loop closure of
@@ -201,8 +205,13 @@ def _load_run(database: Path, params: Optional[Params]) -> _Run:
         gmap = load_global_map(database, params)
         grid = global_grid(gmap, db, params) if gmap.poses and db.load_scans(gmap.components[0]) else None
         local_poses, local_links = _local_map(nodes, links, params, gmap.planar)
-        local_scans = db.load_scans(list(local_poses)) if local_poses else {}
-    local_grid = build_grid({n: local_poses[n] for n in local_scans}, local_scans, params.grid) if local_scans else None
+        same_as_global = bool(gmap.components) and set(local_poses) == gmap.components[0]
+        local_scans = db.load_scans(list(local_poses)) if local_poses and not same_as_global else {}
+    if same_as_global:
+        # Nothing was transferred to LTM: the local map is the global map (same graph, same root).
+        local_grid = grid
+    else:
+        local_grid = build_grid({n: local_poses[n] for n in local_scans}, local_scans, params.grid) if local_scans else None
     map_ids = sorted({int(r["map_id"]) for r in stats} | set(gmap.map_ids.values()))
     return _Run(params, stats, gmap, grid, local_poses, local_links, local_grid,
                 {m: k + 1 for k, m in enumerate(map_ids)})
@@ -390,27 +399,31 @@ def plot_global_map(run: _Run, path: Path) -> None:
     fig.savefig(path)
 
 
+def _session_color(session: int) -> str:
+    return SESSION_COLORS[(session - 1) % len(SESSION_COLORS)]
+
+
 def plot_sessions_y(run: _Run, path: Path) -> None:
     """y of the odometry poses over time by session, with the loop closures (2014 Fig. 8)."""
     from matplotlib.collections import LineCollection
-    from matplotlib import colormaps
 
     gmap = run.gmap
     order = sorted(gmap.odom_poses, key=lambda n: (gmap.stamps_ns[n], n))
     index = {n: k for k, n in enumerate(order)}
     y = {n: gmap.odom_poses[n][1, 3] for n in order}
-    palette = colormaps["tab10"]
     fig, ax = _figure(11, 4.8)
     for map_id in sorted({gmap.map_ids[n] for n in order}):
         ids = [n for n in order if gmap.map_ids[n] == map_id]
         session = run.session_of_map.get(map_id, map_id)
-        ax.plot([index[n] for n in ids], [y[n] for n in ids], "-", lw=1.6, color=palette((session - 1) % 10),
+        ax.plot([index[n] for n in ids], [y[n] for n in ids], "-", lw=1.6, color=_session_color(session),
                 label=f"session {session} ({len(ids)} nodes)", zorder=3)
     for kind in (LinkType.LOOP_INTRA, LinkType.LOOP_INTER):
         segs = [((index[l.from_id], y[l.from_id]), (index[l.to_id], y[l.to_id])) for l in gmap.links
                 if l.type is kind and l.from_id in index and l.to_id in index]
         if segs:
-            ax.add_collection(LineCollection(segs, colors=LINK_COLORS[kind], linewidths=0.6, alpha=0.8,
+            # Hundreds of links stay readable when they are faint.
+            alpha = float(np.clip(SESSION_LINKS_ALPHA_SCALE / len(segs), 0.25, 0.8))
+            ax.add_collection(LineCollection(segs, colors=LINK_COLORS[kind], linewidths=0.6, alpha=alpha,
                                              label=f"{LINK_LABELS[kind]} ({len(segs)})", zorder=2))
     ax.set_title("y of the odometry poses (not optimised; each session starts at its own origin) "
                  "and the loop closures joining them")
@@ -436,12 +449,11 @@ def plot_local_vs_global(run: _Run, path: Path) -> None:
     if run.grid is not None:
         _draw_grid(ax2, run.grid)
     _draw_graph(ax2, main, gmap.links, lw=0.6)
+    # Nodes in WM marked (the paper's light grey areas), the others are in LTM.
     wm_xy = np.array([main[n][:2, 3] for n in main if gmap.in_wm.get(n)]).reshape(-1, 2)
-    ax2.plot(wm_xy[:, 0], wm_xy[:, 1], "o", ms=4, mfc="#ffa500", mec="none", zorder=5,
-             label=f"nodes in WM ({len(wm_xy)}); the others are in LTM")
-    local_xy = np.array([main[n][:2, 3] for n in run.local_poses if n in main]).reshape(-1, 2)
-    ax2.plot(local_xy[:, 0], local_xy[:, 1], "o", ms=7, mfc="none", mec="#8000a0", mew=0.8, zorder=6,
-             label=f"nodes of the local map a) ({len(local_xy)})")
+    ltm_xy = np.array([main[n][:2, 3] for n in main if not gmap.in_wm.get(n)]).reshape(-1, 2)
+    ax2.plot(wm_xy[:, 0], wm_xy[:, 1], "o", ms=3, mfc="#ffa500", mec="none", zorder=5, label=f"nodes in WM ({len(wm_xy)})")
+    ax2.plot(ltm_xy[:, 0], ltm_xy[:, 1], "o", ms=2, mfc="0.2", mec="none", zorder=5, label=f"nodes in LTM ({len(ltm_xy)})")
     ax2.set_title(f"b) global map: all {len(main)} nodes (WM + LTM), optimised offline")
     for ax in (ax1, ax2):
         _map_axes(ax, bounds)
@@ -460,9 +472,6 @@ def _estimate_trajectory(gmap: GlobalMap):
 
 def plot_trajectories(run: _Run, ground_truth, result, ids: list[int], estimate, path: Path) -> None:
     """Estimated trajectory (one rigid alignment) over the true one, coloured by session."""
-    from matplotlib import colormaps
-
-    palette = colormaps["tab10"]
     T = result.T_gt_est
     est = estimate.positions @ T[:3, :3].T + T[:3, 3]
     gt_xy = ground_truth.positions[result.index_gt]
@@ -478,7 +487,7 @@ def plot_trajectories(run: _Run, ground_truth, result, ids: list[int], estimate,
     for map_id in sorted(set(map_ids.tolist())):
         sel = map_ids == map_id
         session = run.session_of_map.get(map_id, map_id)
-        ax.plot(est_xy[sel, 0], est_xy[sel, 1], ".", ms=3, color=palette((session - 1) % 10),
+        ax.plot(est_xy[sel, 0], est_xy[sel, 1], ".", ms=3, color=_session_color(session),
                 label=f"estimate, session {session}", zorder=2)
     ax.set_aspect("equal")
     ax.set_xlabel("x, ground-truth frame (m)")
