@@ -264,7 +264,7 @@ def plot_process_time(run: _Run, path: Path) -> None:
     ptime_s = _column(run.stats, "process_time_ms") / MS_PER_S
     t_time_s = run.params.memory.time_threshold_ms / MS_PER_S
     rate = run.params.sync.rate_hz
-    fig, ax = _figure(10, 4.2)
+    fig, ax = _figure(12, 4.2)
     ax.plot(frames, ptime_s, ".", ms=2.5, color="#1f4fd6", label="pTime (process time)")
     if t_time_s > 0:
         ax.axhline(t_time_s, color="#e02020", lw=1.5, label=f"T_time = {t_time_s:.2f} s")
@@ -279,7 +279,7 @@ def plot_process_time(run: _Run, path: Path) -> None:
     ax.set_xlim(frames.min(initial=0), max(frames.max(initial=1), 1))
     _mark_sessions(ax, run)
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(0.0, 0.93), fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     fig.savefig(path)
 
 
