@@ -209,3 +209,18 @@ def test_simulated_two_sessions_merge_into_one_map(tmp_path):
     ids = sorted(gmap.poses)
     est = Trajectory(np.array([gmap.stamps_ns[i] for i in ids]), np.stack([gmap.poses[i] for i in ids]))
     assert ate(est, truth).rmse_m < 0.3
+
+
+def test_false_inter_session_loop_at_the_root_does_not_shape_the_guess(tmp_path, rng, params):
+    """A false loop closure from the newest node (the root) to the other session: chaining links
+    breadth-first from the root would place the whole first session through it, 10 m off."""
+    gt, _ = make_database(tmp_path / "map.db", rng)
+    newest = max(gt)
+    bad = Link(newest, 1, LinkType.LOOP_INTER,
+               transforms.relative(gt[newest], gt[1]) @ transforms.from_xy_yaw(10.0, 0.0, 0.5),
+               np.eye(6) / LOOP_VARIANCE)
+    with Database(tmp_path / "map.db") as db:
+        db.write(WriteBatch(links=[bad]))
+    gmap = load_global_map(tmp_path / "map.db", params)
+    assert [l.key() for l in gmap.rejected] == [bad.key()]
+    assert aligned_error(gmap.poses, gt) < 0.1
