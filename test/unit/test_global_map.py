@@ -211,16 +211,19 @@ def test_simulated_two_sessions_merge_into_one_map(tmp_path):
     assert ate(est, truth).rmse_m < 0.3
 
 
-def test_false_inter_session_loop_at_the_root_does_not_shape_the_guess(tmp_path, rng, params):
-    """A false loop closure from the newest node (the root) to the other session: chaining links
-    breadth-first from the root would place the whole first session through it, 10 m off."""
+def test_false_inter_session_loops_at_the_root_do_not_shape_the_guess(tmp_path, rng, params):
+    """Three mutually consistent false loop closures (a look-alike place 10 m away) from the
+    newest nodes to the first session are all rejected. (On this small graph DCS also recovers
+    from the plain breadth-first guess; the consensus guess was needed on the simulated 5
+    sessions, see bench/bench_slam.py.)"""
     gt, _ = make_database(tmp_path / "map.db", rng)
     newest = max(gt)
-    bad = Link(newest, 1, LinkType.LOOP_INTER,
-               transforms.relative(gt[newest], gt[1]) @ transforms.from_xy_yaw(10.0, 0.0, 0.5),
-               np.eye(6) / LOOP_VARIANCE)
+    offset = transforms.from_xy_yaw(10.0, 0.0, 0.5)
+    bad = [Link(newest - k, 1 + k, LinkType.LOOP_INTER,
+                transforms.relative(gt[newest - k], offset @ gt[1 + k]), np.eye(6) / LOOP_VARIANCE)
+           for k in range(3)]
     with Database(tmp_path / "map.db") as db:
-        db.write(WriteBatch(links=[bad]))
+        db.write(WriteBatch(links=bad))
     gmap = load_global_map(tmp_path / "map.db", params)
-    assert [l.key() for l in gmap.rejected] == [bad.key()]
+    assert sorted(l.key() for l in gmap.rejected) == sorted(l.key() for l in bad)
     assert aligned_error(gmap.poses, gt) < 0.1
