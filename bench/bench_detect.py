@@ -150,13 +150,28 @@ def targets_of(results: list[dict]) -> dict | None:
             "max_ptime_met": main_run["ptime_max_ms"] / 1000.0 <= TARGET_MAX_PTIME_S}
 
 
+def results_path(args: argparse.Namespace) -> Path:
+    return RESULTS / ("detect_quick.json" if args.quick and args.n is None else "detect.json")
+
+
+def previous_runs(n: int, args: argparse.Namespace, thresholds) -> list[dict]:
+    """Runs of other T_time values from an earlier invocation on the same sequence."""
+    path = results_path(args)
+    if not path.exists():
+        return []
+    old = json.loads(path.read_text())
+    if old.get("images") != n or old.get("seed") != SEED:
+        return []
+    return [r for r in old["runs"] if r["t_time_s"] not in thresholds]
+
+
 def write_report(results: list[dict], n: int, gt_positives: int | None, args: argparse.Namespace) -> Path:
     """JSON of the runs so far (rewritten after every run, so a long benchmark keeps partial results)."""
     report = {"images": n, "seed": SEED, "revisit_ratio": REVISIT_RATIO, "size": "640x480",
               "images_with_gt_loop": gt_positives, "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(),
               "targets_t_time_0.7": targets_of(results), "runs": results}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / ("detect_quick.json" if args.quick and args.n is None else "detect.json")
+    path = results_path(args)
     path.write_text(json.dumps(report, indent=1))
     return path
 
@@ -168,6 +183,8 @@ def main() -> int:
     parser.add_argument("--time-thresholds", type=float, nargs="+", default=None, metavar="S",
                         help="T_time values in seconds (0 = no memory management)")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="where the images are cached")
+    parser.add_argument("--append", action="store_true",
+                        help="keep the runs of other T_time values already in the results JSON (same images)")
     parser.add_argument("--single", type=float, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     n = args.n or (QUICK_IMAGES if args.quick else FULL_IMAGES)
@@ -177,7 +194,7 @@ def main() -> int:
         return 0
     thresholds = args.time_thresholds or (QUICK_T_TIME_S if args.quick else DEFAULT_T_TIME_S)
     gt_positives = None
-    results = []
+    results = previous_runs(n, args, thresholds) if args.append else []
     for t in thresholds:
         t0 = time.perf_counter()
         out = subprocess.run([sys.executable, __file__, "--n", str(n), "--data", str(args.data), "--single", str(t)],
