@@ -30,9 +30,8 @@ from typing import Iterable, Optional
 
 import numpy as np
 
-from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.database import Database
-from rtabmap_ros2.core.graph import Link, LinkType, chain_poses, connected_components
+from rtabmap_ros2.core.graph import Link, LinkType, connected_components, consensus_guess
 from rtabmap_ros2.core.grid import OccupancyGrid, assemble_cloud, build_grid, voxel_filter
 from rtabmap_ros2.core.optimizer import OptimizationResult, optimize
 from rtabmap_ros2.core.params import Params
@@ -43,8 +42,6 @@ log = logging.getLogger(__name__)
 # 50 x 640x480 float32 depth = 60 MB), each chunk voxel-filtered before the final filter.
 CLOUD_CHUNK_NODES = 50
 # Initial guess: two loop closures propose the same alignment of two sessions within these.
-CONSENSUS_DISTANCE_M = 0.5
-CONSENSUS_ANGLE_RAD = np.deg2rad(10.0)
 
 
 @dataclass
@@ -147,74 +144,6 @@ def load_global_map(database_path: str | os.PathLike, params: Params) -> GlobalM
         map_ids={i: nodes[i].map_id for i in odom}, stamps_ns={i: nodes[i].stamp_ns for i in odom},
         weights={i: nodes[i].weight for i in odom}, in_wm={i: nodes[i].in_wm for i in odom},
         components=components, roots=roots, optimizations=results, planar=planar, links_by_type=by_type)
-
-
-def consensus_guess(root: int, root_pose: np.ndarray, links: list[Link]) -> dict[int, np.ndarray]:
-    """Initial guess robust to false loop closures: odometry chains placed by consensus.
-
-    Chaining every link breadth-first from the root (``graph.chain_poses``) can reach a whole
-    session through one false loop closure (perceptual aliasing: look-alike posters 15 m apart),
-    and the robust optimisation then starts from a guess tens of metres off and settles in a
-    wrong minimum (measured on the simulated 5 sessions: guess ATE 21.8 m, result 17 m). Here:
-
-    1. segments = nodes joined by neighbour links (one per session, odometry only);
-    2. every loop closure between two segments proposes a rigid alignment of one on the other;
-       a proposal's support = the proposals of the same pair agreeing with it within
-       :data:`CONSENSUS_DISTANCE_M` / :data:`CONSENSUS_ANGLE_RAD`;
-    3. segments are placed from the root's one along the best-supported proposals (a maximum
-       spanning tree), so an isolated false loop closure never shapes the guess.
-
-    Loop closures inside a segment do not change the guess (odometry). Returns node -> 4x4 pose.
-    """
-    neighbor_links = [l for l in links if l.type is LinkType.NEIGHBOR]
-    nodes = {l.from_id for l in links} | {l.to_id for l in links} | {root}
-    segments = connected_components(nodes, neighbor_links)
-    segment_of = {n: k for k, seg in enumerate(segments) for n in seg}
-    # Odometry chain of each segment, in the frame of its first-placed node.
-    local: dict[int, dict[int, np.ndarray]] = {}
-    for k, seg in enumerate(segments):
-        start = root if root in seg else max(seg)
-        local[k] = chain_poses(start, transforms.identity(), [l for l in neighbor_links if l.from_id in seg])
-    proposals: dict[tuple[int, int], list[np.ndarray]] = {}
-    for link in links:
-        a, b = segment_of[link.from_id], segment_of[link.to_id]
-        if a == b:
-            continue
-        # Pose of segment b's frame in segment a's frame implied by this link.
-        T_a_b = local[a][link.from_id] @ link.T_from_to @ np.linalg.inv(local[b][link.to_id])
-        proposals.setdefault((a, b), []).append(T_a_b)
-        proposals.setdefault((b, a), []).append(np.linalg.inv(T_a_b))
-    best: dict[tuple[int, int], tuple[int, np.ndarray]] = {}
-    for pair, candidates in proposals.items():
-        support = [sum(_agree(c, other) for other in candidates) for c in candidates]
-        i = int(np.argmax(support))
-        best[pair] = (support[i], candidates[i])
-    # Maximum spanning tree from the root's segment (Prim).
-    start = segment_of[root]
-    frame = {start: root_pose @ np.linalg.inv(local[start][root])}
-    while True:
-        options = [(sup, a, b, T) for (a, b), (sup, T) in best.items() if a in frame and b not in frame]
-        if not options:
-            break
-        _, a, b, T = max(options, key=lambda o: o[0])
-        frame[b] = frame[a] @ T
-    poses = {}
-    for k, T_map_seg in frame.items():
-        for n, T in local[k].items():
-            poses[n] = T_map_seg @ T
-    # Segments unreachable by loop closures cannot be in this component; keep the plain chain otherwise.
-    missing = nodes - set(poses)
-    if missing:
-        chained = chain_poses(root, root_pose, links)
-        poses.update({n: chained[n] for n in missing})
-    return poses
-
-
-def _agree(A: np.ndarray, B: np.ndarray) -> bool:
-    """Two segment alignments within the consensus tolerance (translation and rotation)."""
-    D = np.linalg.inv(A) @ B
-    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
-    return bool(np.linalg.norm(D[:3, 3]) < CONSENSUS_DISTANCE_M and angle < CONSENSUS_ANGLE_RAD)
 
 
 def _selected(global_map: GlobalMap, nodes: Optional[Iterable[int]]) -> dict[int, np.ndarray]:

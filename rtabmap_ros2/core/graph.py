@@ -183,3 +183,81 @@ def chain_poses(root_id: int, root_pose: np.ndarray, links: Iterable[Link]) -> d
                 poses[link.to_id] = poses[node] @ link.T_from_to
                 queue.append(link.to_id)
     return poses
+
+
+# consensus_guess: two alignments of a segment agree within these (translation, rotation).
+CONSENSUS_DISTANCE_M = 0.5
+CONSENSUS_ANGLE_RAD = np.deg2rad(10.0)
+
+
+def consensus_guess(root: int, root_pose: np.ndarray, links: list[Link]) -> dict[int, np.ndarray]:
+    """Initial guess robust to false loop closures: odometry chains placed by consensus.
+
+    Chaining every link breadth-first from the root (``graph.chain_poses``) can reach a whole
+    session through one false loop closure (perceptual aliasing: look-alike posters 15 m apart),
+    and the robust optimisation then starts from a guess tens of metres off and settles in a
+    wrong minimum (measured on the simulated 5 sessions: guess ATE 21.8 m, result 17 m). Here:
+
+    1. segments = nodes joined by neighbour links (one per session, odometry only);
+    2. every loop closure between two segments proposes a rigid alignment of one on the other;
+       a proposal's support = the proposals of the same pair agreeing with it within
+       :data:`CONSENSUS_DISTANCE_M` / :data:`CONSENSUS_ANGLE_RAD`;
+    3. segments are placed from the root's one along the best-supported proposals (a maximum
+       spanning tree), so an isolated false loop closure never shapes the guess.
+
+    Loop closures inside a segment do not change the guess (odometry). Returns node -> 4x4 pose.
+    """
+    neighbor_links = [l for l in links if l.type is LinkType.NEIGHBOR]
+    nodes = {l.from_id for l in links} | {l.to_id for l in links} | {root}
+    segments = connected_components(nodes, neighbor_links)
+    segment_of = {n: k for k, seg in enumerate(segments) for n in seg}
+    # Odometry chain of each segment, in the frame of its first-placed node.
+    local: dict[int, dict[int, np.ndarray]] = {}
+    for k, seg in enumerate(segments):
+        start = root if root in seg else max(seg)
+        local[k] = chain_poses(start, transforms.identity(), [l for l in neighbor_links if l.from_id in seg])
+    proposals: dict[tuple[int, int], list[np.ndarray]] = {}
+    for link in links:
+        a, b = segment_of[link.from_id], segment_of[link.to_id]
+        if a == b:
+            continue
+        # Pose of segment b's frame in segment a's frame implied by this link.
+        T_a_b = local[a][link.from_id] @ link.T_from_to @ transforms.inverse(local[b][link.to_id])
+        proposals.setdefault((a, b), []).append(T_a_b)
+        proposals.setdefault((b, a), []).append(transforms.inverse(T_a_b))
+    best: dict[tuple[int, int], tuple[int, np.ndarray]] = {}
+    for pair, candidates in proposals.items():
+        support = _support(np.stack(candidates))
+        i = int(np.argmax(support))
+        best[pair] = (int(support[i]), candidates[i])
+    # Maximum spanning tree from the root's segment (Prim).
+    start = segment_of[root]
+    frame = {start: root_pose @ transforms.inverse(local[start][root])}
+    while True:
+        options = [(sup, a, b, T) for (a, b), (sup, T) in best.items() if a in frame and b not in frame]
+        if not options:
+            break
+        _, a, b, T = max(options, key=lambda o: o[0])
+        frame[b] = frame[a] @ T
+    poses = {}
+    for k, T_map_seg in frame.items():
+        for n, T in local[k].items():
+            poses[n] = T_map_seg @ T
+    # Segments unreachable by loop closures cannot be in this component; keep the plain chain otherwise.
+    missing = nodes - set(poses)
+    if missing:
+        chained = chain_poses(root, root_pose, links)
+        poses.update({n: chained[n] for n in missing})
+    return poses
+
+
+def _support(alignments: np.ndarray) -> np.ndarray:
+    """(K,) how many of K 4x4 alignments agree with each one (itself included), all pairs at once."""
+    R = alignments[:, :3, :3]
+    t = alignments[:, :3, 3]
+    # D_ij = inv(A_i) @ A_j: rotation R_i^T R_j, translation R_i^T (t_j - t_i).
+    rel_R = np.einsum("iba,jbc->ijac", R, R)
+    cos = np.clip((np.trace(rel_R, axis1=2, axis2=3) - 1.0) / 2.0, -1.0, 1.0)
+    dist = np.linalg.norm(t[None, :, :] - t[:, None, :], axis=2)  # |R_i^T (t_j - t_i)| = |t_j - t_i|
+    agree = (dist < CONSENSUS_DISTANCE_M) & (np.arccos(cos) < CONSENSUS_ANGLE_RAD)
+    return agree.sum(axis=1)

@@ -216,15 +216,30 @@ class Memory:
             out[loc] = n_pair / max(n_t, len(self.signatures[loc].word_ids))
         return out
 
-    def add_loop_closure(self, link: Link) -> None:
-        """Loop closure link and weight transfer (§III-D): w_t += w_i, w_i = 0."""
+    def add_loop_closure(self, link: Link) -> tuple[int, int, int]:
+        """Loop closure link and weight transfer (§III-D): w_t += w_i, w_i = 0.
+
+        Returns what :meth:`undo_loop_closure` needs: (w_t, w_i, last loop closure id) before.
+        """
         current = self.signatures[link.from_id]
         old = self.signatures[link.to_id]
+        before = (current.weight, old.weight, self.last_loop_closure_id)
         current.weight += old.weight
         old.weight = 0
         self._batch.weights[old.id] = 0
         self.last_loop_closure_id = max(current.id, old.id)
         self.add_link(link)
+        return before
+
+    def undo_loop_closure(self, link: Link, before: tuple[int, int, int]) -> None:
+        """Remove a loop closure found inconsistent after optimisation, restoring the weights."""
+        self.remove_link(link.from_id, link.to_id)
+        current_weight, old_weight, last_id = before
+        for node, weight in ((link.from_id, current_weight), (link.to_id, old_weight)):
+            if node in self.signatures:
+                self.signatures[node].weight = weight
+                self._batch.weights[node] = weight
+        self.last_loop_closure_id = last_id
 
     # -- retrieval (Alg. 3) ---------------------------------------------------------------------
     def retrieval_candidates(self, hypothesis_id: int) -> list[int]:

@@ -188,6 +188,10 @@ class GraphParams:
     robust: bool = _p(True, "Dynamic covariance scaling on loop closures; drop those it rejects")
     robust_reject_scale: float = _p(
         0.1, "Robust: a loop closure whose DCS scale ends below this is dropped as inconsistent", "ratio")
+    optimize_max_error: float = _p(
+        3.0, "Reject the frame's new loop closures when, after optimising with them, a link's error "
+        "exceeds this many standard deviations (RTAB-Map's RGBD/OptimizeMaxError; 0 = no check): "
+        "a wrong loop closure (perceptual aliasing) bends the odometry chain", "std dev")
     odom_reset_distance: float = _p(
         0.05, "A new map starts when odometry jumps back within this distance of the origin after "
         "moving away from it (odometry reset)", "m")
@@ -203,6 +207,7 @@ class GraphParams:
         _check(self.iterations >= 1, "graph.iterations", self.iterations, ">= 1")
         _check(0.0 < self.robust_reject_scale < 1.0, "graph.robust_reject_scale", self.robust_reject_scale,
                "in (0, 1)")
+        _check(self.optimize_max_error >= 0, "graph.optimize_max_error", self.optimize_max_error, ">= 0")
         _check(self.odom_reset_distance > 0, "graph.odom_reset_distance", self.odom_reset_distance, "> 0")
         _check(self.odom_default_variance > 0, "graph.odom_default_variance", self.odom_default_variance, "> 0")
         _check(self.loop_closure_variance > 0, "graph.loop_closure_variance", self.loop_closure_variance, "> 0")
@@ -372,6 +377,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Icp/Iterations": ("registration.icp_iterations", int),
     "Optimizer/Iterations": ("graph.iterations", int),
     "Optimizer/Robust": ("graph.robust", lambda v: _to_bool("Optimizer/Robust", v)),
+    "RGBD/OptimizeMaxError": ("graph.optimize_max_error", float),
     "Grid/CellSize": ("grid.resolution", float),
     "Grid/RangeMax": ("grid.range_max", float),
     "Rtabmap/DetectionRate": ("sync.rate_hz", float),

@@ -30,7 +30,8 @@ from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
 from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
-from rtabmap_ros2.core.graph import Graph, Link, LinkType, chain_poses, default_information, loop_type
+from rtabmap_ros2.core.graph import (Graph, Link, LinkType, chain_poses, consensus_guess, default_information,
+                                     loop_type)
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import optimize
 from rtabmap_ros2.core.params import Params
@@ -140,6 +141,8 @@ class Rtabmap:
         self._last_odom: Optional[np.ndarray] = None
         self._session_nodes = 0
         self._new_map_requested = False
+        self._new_loops: list[tuple[Link, tuple[int, int, int]]] = []
+        self._inactive_links: set[tuple[int, int]] = set()
         self._grid: Optional[GridAccumulator] = None
         self._grid_poses: dict[int, np.ndarray] = {}
 
@@ -166,6 +169,7 @@ class Rtabmap:
         features = self._extract(frame)
         watch.lap("features")
         t_process = time.perf_counter()
+        self._new_loops = []
         stats = Statistics(frame_index=self.frame_index, stamp_ns=frame.stamp_ns)
         self.frame_index += 1
         stats.new_map = self._maybe_start_new_map(frame)
@@ -184,7 +188,10 @@ class Rtabmap:
         watch.lap("retrieval")
         # Local map (2014 §II-C), optimised every frame; graph work counts in pTime.
         if stats.location_id and frame.T_odom_base is not None:
-            self._update_local_map(stats.location_id)
+            if self._update_local_map(stats.location_id) and stats.loop_closure_id:
+                stats.rejected_loop_closure_id = stats.loop_closure_id
+                stats.loop_closure_id = 0
+                stats.loop_closure_type = ""
         watch.lap("optimization")
         stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
         # Transfer (Alg. 4) when pTime > T_time.
@@ -357,7 +364,7 @@ class Rtabmap:
                 stats.rejected_loop_closure_id = old.id
                 log.debug("loop closure %d -> %d rejected: %s", sig.id, old.id, exc)
             else:
-                memory.add_loop_closure(link)
+                self._new_loops.append((link, memory.add_loop_closure(link)))
                 stats.loop_closure_id = old.id
                 stats.loop_closure_type = link.type.value
         watch.lap("verification")
@@ -427,33 +434,60 @@ class Rtabmap:
         return hypothesis
 
     def _optimize_component(self, root: int) -> dict[int, np.ndarray]:
-        """Optimised poses of the WM nodes connected to ``root`` (root at its odometry pose)."""
+        """Optimised poses of the WM nodes connected to ``root`` (root at its odometry pose).
+
+        Loop closures the robust optimiser finds inconsistent stay in the graph, inactive for
+        this solution: when later loop closures outvote them they can be right after all (a
+        false inter-session link found first must not make every true one after it look wrong).
+        The initial guess places sessions by consensus of their loop closures for the same
+        reason. The frame's new loop closures are then checked (RTAB-Map's
+        RGBD/OptimizeMaxError): if a link ends more than ``graph.optimize_max_error`` standard
+        deviations off, they are removed and the graph optimised again without them.
+        """
         memory = self.memory
         component = memory.graph.component(root, allowed=memory.signatures)
         links = _links_within(memory.graph, component)
         root_pose = memory.signatures[root].T_odom_base
+        self._inactive_links = set()
         if not any(link.type.is_loop_closure for link in links):
             # A tree of neighbour links: chaining them is the optimum. (Re-using the previous
             # poses here fed round-off back every frame: rotations lost orthonormality
             # exponentially, x2 per frame, and poses overflowed after ~1,000 frames.)
             return chain_poses(root, root_pose, links)
-        guess = _warm_start(root, root_pose, links, self._optimized)
+        guess = consensus_guess(root, root_pose, links)
         result = optimize(guess, links, root, self.params.graph, planar=bool(self._planar))
-        for link in result.rejected:
-            # Robust option: a loop closure inconsistent with the graph is removed from the map.
-            log.info("loop closure %d -> %d rejected by the optimiser", link.from_id, link.to_id)
-            memory.remove_link(link.from_id, link.to_id)
+        self._inactive_links = {link.key() for link in result.rejected}
+        fresh = [(link, before) for link, before in self._new_loops
+                 if link.from_id in component and link.to_id in component]
+        limit = self.params.graph.optimize_max_error
+        if fresh and limit > 0:
+            active = [link for link in links if link.key() not in self._inactive_links]
+            worst = _max_error_ratio(result.poses, active, bool(self._planar))
+            if worst > limit:
+                for link, before in fresh:
+                    log.info("loop closure %d -> %d rejected: a link ends %.1f std devs off after "
+                             "optimisation (> %.1f)", link.from_id, link.to_id, worst, limit)
+                    memory.undo_loop_closure(link, before)
+                self._new_loops = []
+                return self._optimize_component(root)
         return result.poses
 
-    def _update_local_map(self, newest: int) -> None:
-        """Optimise the local map rooted at the newest node (2014 §II-B, C)."""
+    def _update_local_map(self, newest: int) -> bool:
+        """Optimise the local map rooted at the newest node (2014 §II-B, C).
+
+        Returns True when the frame's new loop closures were rejected as inconsistent.
+        """
         memory = self.memory
         if memory.signatures[newest].T_odom_base is None:
-            return
+            return False
+        had_loops = bool(self._new_loops)
         poses = self._optimize_component(newest)
         self._optimized = poses
-        self._local_links = _links_within(memory.graph, set(poses))
+        self._local_links = [link for link in _links_within(memory.graph, set(poses))
+                             if link.key() not in self._inactive_links]
         self._T_map_odom = poses[newest] @ transforms.inverse(memory.signatures[newest].T_odom_base)
+        return had_loops and not any(memory.graph.link(l.from_id, l.to_id) and l.key() not in self._inactive_links
+                                     for l, _ in self._new_loops)
 
     def _fill_sizes(self, stats: Statistics) -> None:
         memory = self.memory
@@ -465,6 +499,31 @@ class Rtabmap:
         stats.local_map_size = len(self._optimized)
 
 
+def _max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: bool) -> float:
+    """Largest error of a link after optimisation, in standard deviations of that link.
+
+    Translation and rotation errors are taken separately (the residual transform's norm and
+    angle over the link's standard deviations), as RTAB-Map's RGBD/OptimizeMaxError does.
+    """
+    worst = 0.0
+    for link in links:
+        a, b = poses.get(link.from_id), poses.get(link.to_id)
+        if a is None or b is None:
+            continue
+        residual = transforms.inverse(link.T_from_to) @ transforms.relative(a, b)
+        info = np.diag(link.information)
+        if planar:
+            t_err = float(np.linalg.norm(residual[:2, 3]))
+            t_info, r_info = min(info[0], info[1]), info[5]
+            r_err = abs(transforms.yaw_of(residual))
+        else:
+            t_err = float(np.linalg.norm(residual[:3, 3]))
+            t_info, r_info = info[:3].min(), info[3:].min()
+            r_err = transforms.rotation_angle(residual)
+        worst = max(worst, t_err * np.sqrt(t_info), r_err * np.sqrt(r_info))
+    return worst
+
+
 def _links_within(graph: Graph, nodes: set[int]) -> list[Link]:
     """Links whose two ends are in ``nodes``, each once."""
     out = []
@@ -473,29 +532,6 @@ def _links_within(graph: Graph, nodes: set[int]) -> list[Link]:
             if link.to_id in nodes and node < link.to_id:
                 out.append(link)
     return out
-
-
-def _warm_start(root: int, root_pose: np.ndarray, links: list[Link],
-                previous: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-    """Initial guess: the previous optimised poses, new nodes chained from them by their links,
-    all moved rigidly so the root sits at ``root_pose``."""
-    chained = chain_poses(root, root_pose, links)
-    known = {n: previous[n] for n in chained if n in previous}
-    if not known:
-        return chained
-    graph = Graph(links)
-    poses = dict(known)
-    frontier = list(known)
-    while frontier:
-        nxt = []
-        for node in frontier:
-            for link in graph.links_of(node):
-                if link.to_id not in poses:
-                    poses[link.to_id] = poses[node] @ link.T_from_to
-                    nxt.append(link.to_id)
-        frontier = nxt
-    align = root_pose @ transforms.inverse(poses[root])
-    return {n: align @ p for n, p in poses.items()}
 
 
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
