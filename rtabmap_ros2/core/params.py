@@ -159,6 +159,9 @@ class RegistrationParams:
     ransac_iterations: int = _p(500, "RANSAC hypotheses", "iterations")
     planar: bool = _p(True, "Robot moves on a plane: keep x, y, yaw only (Reg/Force3DoF)")
     icp_refine: bool = _p(True, "Refine visual loop closures with 2D ICP on the laser scans")
+    neighbor_link_refining: bool = _p(
+        False, "Refine each neighbour link with 2D ICP between consecutive scans, the odometry as "
+        "prior (RTAB-Map's RGBD/NeighborLinkRefining; planar mode with a laser)")
     icp_max_correspondence_distance: float = _p(0.3, "ICP: maximum point-to-line correspondence distance", "m")
     icp_iterations: int = _p(30, "ICP: maximum iterations", "iterations")
     icp_min_overlap: float = _p(0.5, "ICP: minimum ratio of scan points with a correspondence", "ratio")
@@ -373,6 +376,8 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Vis/InlierDistance": ("registration.inlier_distance", float),
     "Vis/Iterations": ("registration.ransac_iterations", int),
     "Reg/Force3DoF": ("registration.planar", lambda v: _to_bool("Reg/Force3DoF", v)),
+    "RGBD/NeighborLinkRefining": ("registration.neighbor_link_refining",
+                                  lambda v: _to_bool("RGBD/NeighborLinkRefining", v)),
     "Icp/MaxCorrespondenceDistance": ("registration.icp_max_correspondence_distance", float),
     "Icp/Iterations": ("registration.icp_iterations", int),
     "Optimizer/Iterations": ("graph.iterations", int),

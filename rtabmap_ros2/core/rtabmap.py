@@ -35,7 +35,7 @@ from rtabmap_ros2.core.graph import (Graph, Link, LinkType, chain_poses, consens
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import optimize
 from rtabmap_ros2.core.params import Params
-from rtabmap_ros2.core.registration import register, words_3d
+from rtabmap_ros2.core.registration import refine_neighbor_link, register, words_3d
 from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.errors import OptimizationError, RegistrationError, SensorDataError
@@ -341,7 +341,7 @@ class Rtabmap:
             T = transforms.identity()
             if previous.T_odom_base is not None and sig.T_odom_base is not None:
                 T = transforms.relative(previous.T_odom_base, sig.T_odom_base)
-            neighbor = Link(previous.id, sig.id, LinkType.NEIGHBOR, T, self._odometry_information(frame))
+            neighbor = self._neighbor_link(previous, sig, T, self._odometry_information(frame))
         memory.add_location(sig, blobs, neighbor)
         self._session_nodes += 1
         stats.location_id = sig.id
@@ -388,6 +388,16 @@ class Rtabmap:
         params = replace(self.params.registration, planar=bool(self._planar))
         reg = register(current, old, params)
         return Link(current.id, old.id, kind, reg.T_from_to, reg.information)
+
+    def _neighbor_link(self, previous: Signature, new: Signature, T_odom: np.ndarray, info: np.ndarray) -> Link:
+        """Neighbour link from odometry, refined by scan matching when enabled (planar, scans)."""
+        params = self.params.registration
+        if params.neighbor_link_refining and self._planar and previous.scan is not None and new.scan is not None:
+            try:
+                T_odom, info = refine_neighbor_link(previous.scan, new.scan, T_odom, info, params)
+            except RegistrationError as exc:
+                log.debug("neighbour link %d -> %d kept from odometry: %s", previous.id, new.id, exc)
+        return Link(previous.id, new.id, LinkType.NEIGHBOR, T_odom, info)
 
     def _odometry_information(self, frame: SensorFrame) -> np.ndarray:
         """Information of a neighbour link: the odometry covariance when it is usable."""
