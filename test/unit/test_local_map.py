@@ -1,0 +1,105 @@
+"""The online local map's defences: neighbour link refining, consensus guess, max error check."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.graph import Link, LinkType, consensus_guess, default_information
+from rtabmap_ros2.core.params import RegistrationParams
+from rtabmap_ros2.core.registration import refine_neighbor_link
+from rtabmap_ros2.core.rtabmap import _max_error_ratio
+from rtabmap_ros2.core.sensor import LaserScan
+from rtabmap_ros2.errors import RegistrationError
+
+ODOM_INFO = np.diag(1.0 / np.array([1e-4, 1e-4, 1e-6, 1e-6, 1e-6, 1e-5]))
+
+
+def scan_of_walls(T_world_base: np.ndarray, walls: list[tuple[tuple[float, float], tuple[float, float]]],
+                  rng: np.random.Generator, noise: float = 0.005) -> LaserScan:
+    """A 240 deg scan (0.5 deg) of wall segments seen from a pose, with range noise."""
+    angles = np.deg2rad(np.arange(-120.0, 120.0, 0.5))
+    x, y, yaw = transforms.to_xy_yaw(T_world_base)
+    ranges = np.full(angles.size, np.inf)
+    dirs = np.stack([np.cos(angles + yaw), np.sin(angles + yaw)], axis=1)
+    for (ax, ay), (bx, by) in walls:
+        e = np.array([bx - ax, by - ay])
+        for i, d in enumerate(dirs):
+            M = np.array([[d[0], -e[0]], [d[1], -e[1]]])
+            if abs(np.linalg.det(M)) < 1e-12:
+                continue
+            t, u = np.linalg.solve(M, np.array([ax - x, ay - y]))
+            if t > 0 and 0 <= u <= 1:
+                ranges[i] = min(ranges[i], t)
+    ranges = ranges + rng.normal(0, noise, ranges.size)
+    return LaserScan(ranges.astype(np.float32), float(angles[0]), float(np.deg2rad(0.5)), 0.1, 30.0)
+
+
+ROOM = [((-3, -2), (4, -2)), ((4, -2), (4, 3)), ((4, 3), (-3, 3)), ((-3, 3), (-3, -2)),
+        ((1, 0.5), (2, 0.5)), ((1, 0.5), (1, 1.5))]
+CORRIDOR = [((-20, -1), (20, -1)), ((-20, 1), (20, 1))]
+
+
+def test_refined_neighbor_link_is_closer_to_the_truth_than_odometry(rng):
+    truth = transforms.from_xy_yaw(0.5, 0.05, np.deg2rad(4.0))
+    previous = scan_of_walls(transforms.identity(), ROOM, rng)
+    new = scan_of_walls(truth, ROOM, rng)
+    odometry = truth @ transforms.from_xy_yaw(0.03, -0.02, np.deg2rad(0.8))  # drifted odometry
+    T, info = refine_neighbor_link(previous, new, odometry, ODOM_INFO, RegistrationParams())
+    err = transforms.relative(truth, T)
+    assert np.linalg.norm(err[:2, 3]) < 0.01
+    assert abs(transforms.yaw_of(err)) < np.deg2rad(0.1)
+    # The scans add information on x, y, yaw; z, roll, pitch keep the odometry's.
+    assert info[0, 0] > ODOM_INFO[0, 0] and info[5, 5] > ODOM_INFO[5, 5]
+    assert info[2, 2] == ODOM_INFO[2, 2]
+
+
+def test_corridor_direction_the_scans_cannot_see_stays_on_odometry(rng):
+    """Two parallel walls constrain y and yaw, not x: x must come from the odometry prior."""
+    truth = transforms.from_xy_yaw(0.5, 0.0, 0.0)
+    previous = scan_of_walls(transforms.identity(), CORRIDOR, rng)
+    new = scan_of_walls(truth, CORRIDOR, rng)
+    odometry = transforms.from_xy_yaw(0.53, 0.04, np.deg2rad(1.0))
+    T, info = refine_neighbor_link(previous, new, odometry, ODOM_INFO, RegistrationParams())
+    assert abs(T[0, 3] - 0.53) < 0.005  # along the corridor: odometry
+    assert abs(T[1, 3] - 0.0) < 0.01  # across: the walls
+    assert abs(transforms.yaw_of(T)) < np.deg2rad(0.2)
+    assert info[1, 1] > 10 * info[0, 0]  # the information says so too
+
+
+def test_refinement_refused_when_scans_do_not_overlap(rng):
+    previous = scan_of_walls(transforms.identity(), ROOM, rng)
+    elsewhere = scan_of_walls(transforms.identity(), [((10, 10), (11, 10))], rng)
+    with pytest.raises(RegistrationError, match="overlap"):
+        refine_neighbor_link(previous, elsewhere, transforms.identity(), ODOM_INFO, RegistrationParams())
+
+
+def chain(ids, step=1.0):
+    info = default_information(1e-3)
+    return [Link(a, b, LinkType.NEIGHBOR, transforms.from_xy_yaw(step, 0, 0), info) for a, b in zip(ids, ids[1:])]
+
+
+def test_consensus_guess_ignores_a_false_inter_session_loop_closure_outvoted_by_true_ones():
+    """Session A = nodes 1..10, session B = 11..20 drives the same corridor 0.5 m to the side.
+
+    One false loop closure (found first, 15 m off) and three true ones: the guess follows the
+    true ones, whatever the order the links come in.
+    """
+    info = default_information(1e-3)
+    side = transforms.from_xy_yaw(0.0, 0.5, 0.0)
+    true = [Link(10 + k, k, LinkType.LOOP_INTER, transforms.inverse(side), info) for k in (3, 5, 7)]
+    false = [Link(12, 2, LinkType.LOOP_INTER, transforms.from_xy_yaw(-15.0, 0, 0), info)]
+    links = chain(range(1, 11)) + chain(range(11, 21)) + false + true
+    guess = consensus_guess(20, transforms.from_xy_yaw(9.0, 0.5, 0.0), links)
+    for k in range(1, 11):
+        np.testing.assert_allclose(guess[k][:3, 3], [k - 1.0, 0.0, 0.0], atol=1e-9)
+
+
+def test_max_error_ratio_flags_a_link_bent_beyond_its_standard_deviation():
+    info = np.diag(1.0 / np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4]))  # sigma 1 cm, 0.57 deg
+    link = Link(1, 2, LinkType.NEIGHBOR, transforms.from_xy_yaw(1.0, 0, 0), info)
+    poses = {1: transforms.identity(), 2: transforms.from_xy_yaw(1.02, 0, 0)}
+    assert _max_error_ratio(poses, [link], planar=True) == pytest.approx(2.0, rel=1e-6)
+    poses[2] = transforms.from_xy_yaw(1.0, 0, np.deg2rad(2.0))
+    assert _max_error_ratio(poses, [link], planar=True) == pytest.approx(np.deg2rad(2.0) / 0.01, rel=1e-3)
