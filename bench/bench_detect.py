@@ -91,7 +91,7 @@ def run_one(folder: Path, n: int, t_time_s: float) -> dict:
                              highest_hypothesis_value=s.highest_hypothesis_value, merged_id=s.merged_id,
                              process_time_ms=s.process_time_ms, total_time_ms=s.total_time_ms,
                              wm_size=s.wm_size, stm_size=s.stm_size, vocabulary_size=s.vocabulary_size,
-                             retrieved=s.retrieved, transferred=s.transferred))
+                             retrieved=s.retrieved, transferred=s.transferred, timings_ms=dict(s.timings_ms)))
     wall = time.perf_counter() - t0
     rss_end = rss_mb()
     db.unlink(missing_ok=True)
@@ -107,7 +107,10 @@ def run_one(folder: Path, n: int, t_time_s: float) -> dict:
         "ptime_max_ms": round(float(ptime.max()), 2),
         "frames_over_t_time": over,
         "ptime_spikes": [{"image": i + 1, "ptime_ms": round(rows[i]["process_time_ms"], 1),
-                          "vocabulary_size": rows[i]["vocabulary_size"]} for i in spikes],
+                          "vocabulary_size": rows[i]["vocabulary_size"], "wm_size": rows[i]["wm_size"],
+                          "steps_ms": {k: round(v, 1) for k, v in rows[i]["timings_ms"].items()}} for i in spikes],
+        "step_median_ms": {k: round(float(np.median([r["timings_ms"].get(k, 0.0) for r in rows])), 2)
+                           for k in rows[0]["timings_ms"]},
         "total_time_median_ms": round(float(np.median([r["total_time_ms"] for r in rows])), 2),
         "max_wm_size": max(r["wm_size"] for r in rows),
         "max_wm_plus_stm": max(r["wm_size"] + r["stm_size"] for r in rows),
