@@ -30,8 +30,8 @@ from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
 from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
-from rtabmap_ros2.core.graph import (Graph, Link, LinkType, chain_poses, consensus_guess, default_information,
-                                     loop_type)
+from rtabmap_ros2.core.graph import (CONSENSUS_ANGLE_RAD, CONSENSUS_DISTANCE_M, Graph, Link, LinkType, chain_poses,
+                                     consensus_guess, default_information, loop_type)
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import optimize
 from rtabmap_ros2.core.params import Params
@@ -449,8 +449,9 @@ class Rtabmap:
         Loop closures the robust optimiser finds inconsistent stay in the graph, inactive for
         this solution: when later loop closures outvote them they can be right after all (a
         false inter-session link found first must not make every true one after it look wrong).
-        The initial guess places sessions by consensus of their loop closures for the same
-        reason. The frame's new loop closures are then checked (RTAB-Map's
+        The initial guess is the previous solution (few iterations) unless it contradicts the
+        majority of some pair of sessions' loop closures; then sessions are placed by consensus of
+        their loop closures, for the same reason. The frame's new loop closures are then checked (RTAB-Map's
         RGBD/OptimizeMaxError): if a link ends more than ``graph.optimize_max_error`` standard
         deviations off, they are removed and the graph optimised again without them.
         """
@@ -464,7 +465,9 @@ class Rtabmap:
             # poses here fed round-off back every frame: rotations lost orthonormality
             # exponentially, x2 per frame, and poses overflowed after ~1,000 frames.)
             return chain_poses(root, root_pose, links)
-        guess = consensus_guess(root, root_pose, links)
+        guess = _warm_start(root, root_pose, links, self._optimized)
+        if guess is None or not self._fits_inter_session_majority(guess, links):
+            guess = consensus_guess(root, root_pose, links)
         result = optimize(guess, links, root, self.params.graph, planar=bool(self._planar))
         self._inactive_links = {link.key() for link in result.rejected}
         fresh = [(link, before) for link, before in self._new_loops
@@ -481,6 +484,22 @@ class Rtabmap:
                 self._new_loops = []
                 return self._optimize_component(root)
         return result.poses
+
+    def _fits_inter_session_majority(self, poses: dict[int, np.ndarray], links: list[Link]) -> bool:
+        """True when, for every pair of sessions, most of their loop closures hold in ``poses``."""
+        held: dict[tuple[int, int], list[int]] = {}
+        map_ids = self.memory.map_ids
+        for link in links:
+            if link.type is not LinkType.LOOP_INTER:
+                continue
+            pair = tuple(sorted((map_ids[link.from_id], map_ids[link.to_id])))
+            residual = transforms.inverse(link.T_from_to) @ transforms.relative(poses[link.from_id], poses[link.to_id])
+            ok = (np.linalg.norm(residual[:3, 3]) < CONSENSUS_DISTANCE_M
+                  and transforms.rotation_angle(residual) < CONSENSUS_ANGLE_RAD)
+            counts = held.setdefault(pair, [0, 0])
+            counts[0] += ok
+            counts[1] += 1
+        return all(2 * ok >= total for ok, total in held.values())
 
     def _update_local_map(self, newest: int) -> bool:
         """Optimise the local map rooted at the newest node (2014 §II-B, C).
@@ -542,6 +561,28 @@ def _links_within(graph: Graph, nodes: set[int]) -> list[Link]:
             if link.to_id in nodes and node < link.to_id:
                 out.append(link)
     return out
+
+
+def _warm_start(root: int, root_pose: np.ndarray, links: list[Link],
+                previous: dict[int, np.ndarray]) -> Optional[dict[int, np.ndarray]]:
+    """Initial guess from the previous optimised poses, new nodes chained from them by their
+    links, all moved rigidly so the root sits at ``root_pose``; None without a previous solution."""
+    nodes = {link.from_id for link in links} | {link.to_id for link in links} | {root}
+    poses = {n: previous[n] for n in nodes if n in previous}
+    if not poses:
+        return None
+    graph = Graph(links)
+    frontier = list(poses)
+    while frontier:
+        reached = []
+        for node in frontier:
+            for link in graph.links_of(node):
+                if link.to_id not in poses:
+                    poses[link.to_id] = poses[node] @ link.T_from_to
+                    reached.append(link.to_id)
+        frontier = reached
+    align = root_pose @ transforms.inverse(poses[root])
+    return {n: align @ p for n, p in poses.items()}
 
 
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
