@@ -178,19 +178,25 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
         # links that agree with the re-optimised solution are re-admitted (bounded rounds).
         threshold = params.robust_reject_scale
         for _ in range(ROBUST_ROUNDS):
-            bad = [link for link in kept if link.type.is_loop_closure
-                   and _dcs_scale(link, noises[id(link)], values, planar) < threshold]
-            good_again = [link for link in rejected if _dcs_scale(link, noises[id(link)], values, planar) >= threshold]
-            if not bad and not good_again:
-                break
+            scales = {id(link): _dcs_scale(link, noises[id(link)], values, planar) for link in used
+                      if link.type.is_loop_closure}
+            bad = sorted((link for link in kept if link.type.is_loop_closure and scales[id(link)] < threshold),
+                         key=lambda link: scales[id(link)])
+            good_again = [link for link in rejected if scales[id(link)] >= threshold]
             readmitted = {id(link) for link in good_again}
-            rejected = [link for link in rejected if id(link) not in readmitted] + bad
-            rejected_ids = {id(link) for link in rejected}
-            kept = [link for link in used if id(link) not in rejected_ids]
-            if len(connected_components(poses.keys(), kept)) > 1:
-                raise OptimizationError(
-                    "robust optimisation rejected links that were the only connection of part of the graph "
-                    f"({[(l.from_id, l.to_id) for l in rejected]}): check the odometry links")
+            rejected = [link for link in rejected if id(link) not in readmitted]
+            kept = [link for link in used if id(link) not in {id(r) for r in rejected}]
+            # Worst first, but never a link whose removal disconnects the graph: with no other
+            # path between its ends, nothing in the graph contradicts it.
+            dropped = []
+            for link in bad:
+                trial = [k for k in kept if k is not link]
+                if len(connected_components(poses.keys(), trial)) == 1:
+                    kept = trial
+                    dropped.append(link)
+            if not dropped and not good_again:
+                break
+            rejected += dropped
             values, more = _solve(kept, noises, values, root_id, poses[root_id], params, planar)
             iterations += more
         if rejected:

@@ -178,3 +178,20 @@ def test_bad_information_raises():
     bad = Link(1, 2, LinkType.NEIGHBOR, step, np.zeros((6, 6)))
     with pytest.raises(OptimizationError, match="positive definite"):
         optimize(poses, [bad], 1, PLAIN, planar=True)
+
+
+def test_robust_keeps_a_loop_closure_whose_removal_would_disconnect_the_graph():
+    """Two sessions joined only by two mutually inconsistent loop closures, from a guess that
+    satisfies neither (DCS flags both): one must stay, the optimiser must not fail."""
+    info = default_information(1e-3)
+    step = transforms.from_xy_yaw(1.0, 0.0, 0.0)
+    links = [Link(i, i + 1, LinkType.NEIGHBOR, step, info) for i in range(1, 10)]
+    links += [Link(i, i + 1, LinkType.NEIGHBOR, step, info) for i in range(11, 20)]
+    links += [Link(15, 5, LinkType.LOOP_INTER, transforms.identity(), info),
+              Link(18, 3, LinkType.LOOP_INTER, transforms.from_xy_yaw(9.0, 3.0, 1.0), info)]
+    poses = chain_poses(20, transforms.identity(), links)
+    far = transforms.from_xy_yaw(50.0, -40.0, 2.0)
+    poses.update({n: far @ poses[n] for n in range(1, 11)})
+    result = optimize(poses, links, 20, GraphParams(robust=True), planar=True)
+    assert len(result.rejected) == 1
+    assert set(result.poses) == set(range(1, 21))
