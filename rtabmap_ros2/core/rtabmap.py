@@ -188,7 +188,13 @@ class Rtabmap:
         watch.lap("retrieval")
         # Local map (2014 §II-C), optimised every frame; graph work counts in pTime.
         if stats.location_id and frame.T_odom_base is not None:
-            if self._update_local_map(stats.location_id) and stats.loop_closure_id:
+            try:
+                rejected_now = self._update_local_map(stats.location_id)
+            except OptimizationError as exc:
+                # The node is stored; the local map keeps its last solution until the next frame.
+                log.warning("local map not optimised at node %d: %s", stats.location_id, exc)
+                rejected_now = False
+            if rejected_now and stats.loop_closure_id:
                 stats.rejected_loop_closure_id = stats.loop_closure_id
                 stats.loop_closure_id = 0
                 stats.loop_closure_type = ""
