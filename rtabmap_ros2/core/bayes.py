@@ -21,6 +21,8 @@ from rtabmap_ros2.core.params import BayesParams
 
 NEW_LOCATION = -1
 _EPSILON = 1e-9
+# Transition weights (relative to the centre's 1) below this are dropped from neighbourhoods.
+NEGLIGIBLE_TRANSITION = 1e-6
 
 
 @dataclass(frozen=True)
@@ -66,13 +68,17 @@ class TransitionModel:
         self._graph = graph
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         hops = np.arange(params.neighborhood + 1)
-        self._gaussian = np.exp(-0.5 * (hops / params.sigma) ** 2)
+        gaussian = np.exp(-0.5 * (hops / params.sigma) ** 2)
+        # Hops whose weight is negligible are not searched (with sigma 1.6: beyond 8 of the 16),
+        # which matters once loop closures make the graph small-world.
+        self._radius = int(np.flatnonzero(gaussian >= NEGLIGIBLE_TRANSITION)[-1])
+        self._gaussian = gaussian[: self._radius + 1]
 
     def invalidate_around(self, *node_ids: int) -> None:
         """Forget the neighbourhoods that a link change at these nodes may have altered."""
         for node in node_ids:
             if node in self._graph:
-                for other in self._graph.hops_from(node, self._params.neighborhood):
+                for other in self._graph.hops_from(node, self._radius):
                     self._cache.pop(other, None)
             self._cache.pop(node, None)
 
@@ -83,7 +89,7 @@ class TransitionModel:
         """(ids, unnormalised Gaussian weights) of the nodes within ``neighborhood`` hops."""
         cached = self._cache.get(node_id)
         if cached is None:
-            hops = self._graph.hops_from(node_id, self._params.neighborhood)
+            hops = self._graph.hops_from(node_id, self._radius)
             ids = np.fromiter(hops.keys(), dtype=np.int64, count=len(hops))
             dist = np.fromiter(hops.values(), dtype=np.int64, count=len(hops))
             cached = (ids, self._gaussian[dist])
