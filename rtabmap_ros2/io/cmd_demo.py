@@ -132,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"recall at 100 % precision: {100 * s['recall_at_100_precision']:.1f} %")
     print(f"max pTime:            {s['max_process_time_ms']:.0f} ms (T_time {s['time_threshold_ms']:.0f} ms, "
           f"{s['frames_over_time_threshold']} of {s['frames']} frames over)")
-    print(f"time:                 " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items())
+    print("time:                 " + ", ".join(f"{k} {v:.0f} s" for k, v in times.items())
           + f", total {sum(times.values()):.0f} s")
     print(f"map:                  {out / 'export' / 'map.png'}")
     print(f"report:               {report.index_html}")
