@@ -293,9 +293,9 @@ def _refine_with_icp(from_sig: Signature, to_sig: Signature, visual: Registratio
     """
     source = to_sig.scan.points_base()
     target = from_sig.scan.points_base()
-    T_icp, overlap, rmse = icp_2d(source, target, visual.T_from_to,
-                                  max_correspondence_distance=params.icp_max_correspondence_distance,
-                                  iterations=params.icp_iterations)
+    fit = _icp(source, target, visual.T_from_to, None, params.icp_max_correspondence_distance,
+               params.icp_iterations)
+    T_icp, overlap, rmse = fit.T, fit.overlap, fit.rmse
     correction = float(np.linalg.norm(T_icp[:2, 3] - visual.T_from_to[:2, 3]))
     if overlap < params.icp_min_overlap:
         raise RegistrationError(
@@ -308,8 +308,11 @@ def _refine_with_icp(from_sig: Signature, to_sig: Signature, visual: Registratio
     # Apply the planar correction found by ICP to the visual estimate (equal to T_icp when the
     # visual estimate is already planar; keeps z, roll, pitch otherwise).
     T = T_icp @ transforms.inverse(transforms.project_planar(visual.T_from_to)) @ visual.T_from_to
-    spread = _spread_2d(target)
-    info = _information(rmse, spread, planar=True)
+    # The scans' information on x, y, yaw (as for refined neighbour links, so loop closures and
+    # odometry are weighed on one scale); the visual estimate's elsewhere.
+    info = _information(rmse, _spread_2d(target), planar=True)
+    planar_axes = [0, 1, 5]
+    info[np.ix_(planar_axes, planar_axes)] = fit.information
     logger.debug("ICP refined %d -> %d: correction %.3f m, overlap %.2f, rmse %.3f m",
                  from_sig.id, to_sig.id, correction, overlap, rmse)
     return Registration(T, info, visual.inliers, True, rmse)
