@@ -6,7 +6,6 @@ frame; each frame waits for its ``info`` so the tests are deterministic (no timi
 
 from __future__ import annotations
 
-import os
 import random
 import signal
 import subprocess
@@ -43,21 +42,6 @@ N_FRAMES = 14
 TIMEOUT_S = 30.0
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def _ros_env() -> dict[str, str]:
-    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    env.pop("ROS_LOCALHOST_ONLY", None)
-    return env
-
-
-@pytest.fixture(scope="module")
-def context():
-    os.environ.update(_ros_env())
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
 @pytest.fixture(scope="module")
@@ -363,12 +347,12 @@ def test_silent_topics_are_reported_once(context, tmp_path, frames, capfd):
 
 
 # -- across processes ------------------------------------------------------------------------------
-def test_node_subprocess_sigterm_flushes_database(context, tmp_path, frames):
+def test_node_subprocess_sigterm_flushes_database(ros_env, context, tmp_path, frames):
     db_path = tmp_path / "proc.db"
     proc = subprocess.Popen(
         [sys.executable, "-m", "rtabmap_ros2.ros.node", "--ros-args", "-p", f"database_path:={db_path}",
          "-p", "qos:=reliable", "-p", f"export_dir:={tmp_path / 'exports'}"],
-        env=_ros_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     tester = SensorRig(context)
     executor = MultiThreadedExecutor(num_threads=2, context=context)
     executor.add_node(tester)

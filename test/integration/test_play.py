@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import random
 import signal
 import subprocess
@@ -33,21 +32,6 @@ NS = 1_000_000_000
 T0 = 1_700_000_000 * NS
 PERIOD_NS = NS // 10  # 10 Hz
 N_IMAGES = 8
-
-
-def _ros_env() -> dict[str, str]:
-    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    env.pop("ROS_LOCALHOST_ONLY", None)
-    return env
-
-
-@pytest.fixture(scope="module")
-def context():
-    os.environ.update(_ros_env())
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
 @pytest.fixture(scope="module")
@@ -160,10 +144,10 @@ def test_play_refuses_bad_input(context, bag, tmp_path):
         player.destroy_node()
 
 
-def test_play_command_line(context, bag, receiver):
+def test_play_command_line(ros_env, context, bag, receiver):
     """The CLI loops until Ctrl-C; a whole pass arrives in order whatever the discovery delay."""
     proc = subprocess.Popen([sys.executable, "-m", "rtabmap_ros2.io.cli", "play", str(bag), "--rate", "4",
-                             "--loop", "--delay", "1.0"], env=_ros_env(), stderr=subprocess.PIPE, text=True)
+                             "--loop", "--delay", "1.0"], env=ros_env, stderr=subprocess.PIPE, text=True)
     try:
         complete = [f"s{i}" for i in range(N_IMAGES)]
         # Messages sent before discovery completed are lost; the second pass arrives whole.
@@ -176,5 +160,5 @@ def test_play_command_line(context, bag, receiver):
     assert proc.returncode == 0, err
     assert "/chatter:" in err and "/rgb/image:" in err
     bad = subprocess.run([sys.executable, "-m", "rtabmap_ros2.io.cli", "play", str(bag.parent / "missing")],
-                         env=_ros_env(), capture_output=True, text=True, timeout=60)
+                         env=ros_env, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "error:" in bad.stderr and "does not exist" in bad.stderr
