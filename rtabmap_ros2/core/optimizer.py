@@ -200,7 +200,7 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
             values, more = _solve(kept, noises, values, root_id, poses[root_id], params, planar)
             iterations += more
         if rejected:
-            logger.info("robust optimisation rejected %d loop closure(s): %s", len(rejected),
+            logger.debug("robust optimisation rejected %d loop closure(s): %s", len(rejected),
                         [(l.from_id, l.to_id) for l in rejected])
     chi2_final = _chi2(kept, noises, values, planar)
     out = {node_id: _from_gtsam(_value(values, node_id, planar), planar) for node_id in poses}
