@@ -54,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
+    # faiss reports at INFO which CPU variant of its library it could not load: not for users.
+    logging.getLogger("faiss").setLevel(logging.WARNING)
     try:
         return int(args.func(args) or 0)
     except RtabmapError as exc:
