@@ -294,7 +294,7 @@ class Memory:
     # -- transfer (Alg. 4) ----------------------------------------------------------------------
     def transfer(self, protected: set[int]) -> list[int]:
         """Move the oldest of the lowest-weighted WM locations to LTM until as many words left
-        the vocabulary as came in this frame (at least one location)."""
+        the vocabulary as came in this frame, and as many locations as entered WM."""
         immune = set(protected) | set(self.retrieved_now) | self._recent_immune()
         per_map: dict[int, int] = {}
         for node in self.wm:
@@ -302,10 +302,15 @@ class Memory:
             per_map[m] = per_map.get(m, 0) + 1
         candidates = sorted((self.signatures[n].weight, n) for n in self.wm if n not in immune)
         wanted = max(self.words_added, 1)
+        # Alg. 4 stops when as many words left as came in: that bounds the vocabulary, the
+        # paper's cost. Ours is per location too (Bayes filter, local map), so WM must also not
+        # grow: at least as many locations leave as entered WM this frame (one from STM and the
+        # retrieved ones; 5,000-image run: transfer and retrieval cancelled, WM grew 1 a frame).
+        wanted_locations = 1 + len(self.retrieved_now)
         transferred: list[int] = []
         words_out = 0
         for _, node in candidates:
-            if words_out >= wanted:
+            if words_out >= wanted and len(transferred) >= wanted_locations:
                 break
             sig = self.signatures[node]
             if self.params.memory.keep_one_node_per_session and per_map[sig.map_id] <= 1:
