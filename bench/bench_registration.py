@@ -17,7 +17,6 @@ Usage: ``python bench/bench_registration.py [--quick]``. Prints tables and write
 from __future__ import annotations
 
 import argparse
-import gzip
 import itertools
 import json
 import statistics
@@ -32,9 +31,10 @@ from scipy.spatial import cKDTree
 from rtabmap_ros2.core import registration, transforms
 from rtabmap_ros2.core.params import RegistrationParams
 from rtabmap_ros2.core.registration import correspondences, icp_2d, kabsch, register, words_3d
-from rtabmap_ros2.core.sensor import CameraModel, LaserScan
+from rtabmap_ros2.core.sensor import CameraModel
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.errors import RegistrationError
+from rtabmap_ros2.io.carmen import read_carmen_log
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -129,16 +129,9 @@ def _plain_refit(pf, pt, params, seed):
 
 
 def read_carmen(path):
-    scans, poses = [], []
-    with gzip.open(path, "rt") as f:
-        for line in f:
-            if line.startswith("FLASER"):
-                fields = line.split()
-                n = int(fields[1])
-                x, y, th = (float(v) for v in fields[2 + n:5 + n])
-                scans.append(LaserScan(np.array(fields[2:2 + n], float), -np.pi / 2, np.pi / 180, 0.0, 40.0))
-                poses.append(transforms.from_xy_yaw(x, y, th))
-    return scans, poses
+    """(LaserScans, corrected poses) of a CARMEN log."""
+    log = read_carmen_log(path)
+    return log.laser_scans(), log.poses()
 
 
 def icp_accuracy(stride: int) -> dict:

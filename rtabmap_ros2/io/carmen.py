@@ -70,6 +70,16 @@ class CarmenLog:
     scans: list[CarmenScan]
     laser_offset_m: float
 
+    def laser_scans(self) -> list[LaserScan]:
+        """The records as LaserScans (180 degrees from -90, SICK range limits, laser offset)."""
+        T_base_laser = transforms.from_xy_yaw(self.laser_offset_m, 0.0, 0.0)
+        return [LaserScan(s.ranges, SCAN_ANGLE_MIN_RAD, angle_increment(len(s.ranges)), CARMEN_RANGE_MIN_M,
+                          CARMEN_RANGE_MAX_M, T_base_laser) for s in self.scans]
+
+    def poses(self) -> list[np.ndarray]:
+        """The corrected poses (4x4 ``T_map_base``) of the records."""
+        return [transforms.from_xy_yaw(s.x, s.y, s.theta) for s in self.scans]
+
 
 def _open_text(path: Path):
     return gzip.open(path, "rt") if path.suffix == ".gz" else open(path, "rt")
@@ -185,10 +195,7 @@ class CarmenConversion:
 
 def carmen_frames(log: CarmenLog, odom: list[np.ndarray], covs: list[np.ndarray]) -> Iterator[SensorFrame]:
     """SensorFrames (scan + drifting odometry) of a parsed log."""
-    T_base_laser = transforms.from_xy_yaw(log.laser_offset_m, 0.0, 0.0)
-    for s, T, cov in zip(log.scans, odom, covs):
-        scan = LaserScan(s.ranges, SCAN_ANGLE_MIN_RAD, angle_increment(len(s.ranges)), CARMEN_RANGE_MIN_M,
-                         CARMEN_RANGE_MAX_M, T_base_laser)
+    for s, scan, T, cov in zip(log.scans, log.laser_scans(), odom, covs):
         yield SensorFrame(stamp_ns=s.stamp_ns, T_odom_base=T, odom_covariance=cov, scan=scan)
 
 
@@ -208,7 +215,7 @@ def carmen_to_bag(log_path, out, seed: int = 0, noise_trans: float = DEFAULT_NOI
     if noise_trans < 0 or noise_rot_deg_per_m < 0:
         raise DatasetError(f"odometry noise must be >= 0 (got trans {noise_trans}, rot {noise_rot_deg_per_m})")
     log = read_carmen_log(log_path)
-    reference = [transforms.from_xy_yaw(s.x, s.y, s.theta) for s in log.scans]
+    reference = log.poses()
     odom, covs = drifting_odometry(reference, np.random.default_rng(seed), noise_trans, noise_rot_deg_per_m)
     bag_path = write_bag(out, carmen_frames(log, odom, covs), topics=topics, storage=storage)
     gt_path = Path(ground_truth) if ground_truth is not None else bag_path / GROUND_TRUTH_NAME

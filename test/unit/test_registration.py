@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import gzip
 
 import cv2
 import numpy as np
@@ -13,9 +12,10 @@ from scipy.spatial import cKDTree
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.params import RegistrationParams
 from rtabmap_ros2.core.registration import icp_2d, register, words_3d
-from rtabmap_ros2.core.sensor import CameraModel, LaserScan
+from rtabmap_ros2.core.sensor import CameraModel
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.errors import RegistrationError
+from rtabmap_ros2.io.carmen import read_carmen_log
 
 TUM_CAMERA = CameraModel(525.0, 525.0, 319.5, 239.5, 640, 480)  # T_base_camera = identity
 TUM_DEPTH_SCALE = 5000.0
@@ -101,17 +101,9 @@ def test_too_few_inliers_raises(rng):
 
 
 def read_carmen(path):
-    scans, poses = [], []
-    with gzip.open(path, "rt") as f:
-        for line in f:
-            if line.startswith("FLASER"):
-                fields = line.split()
-                n = int(fields[1])
-                ranges = np.array(fields[2:2 + n], float)
-                x, y, th = (float(v) for v in fields[2 + n:5 + n])
-                scans.append(LaserScan(ranges, -np.pi / 2, np.pi / 180, 0.0, 40.0))
-                poses.append(transforms.from_xy_yaw(x, y, th))
-    return scans, poses
+    """(LaserScans, corrected poses) of a CARMEN log."""
+    log = read_carmen_log(path)
+    return log.laser_scans(), log.poses()
 
 
 @functools.lru_cache(maxsize=1)
