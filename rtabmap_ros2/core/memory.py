@@ -131,7 +131,6 @@ class Memory:
         self.on_graph_change(a, b)
         self.graph.remove_link(a, b)
         self._batch.deleted_links.append((a, b))
-        self.on_graph_change(a, b)
 
     # -- weight update / rehearsal (§III-B, Eq. 1) ------------------------------------------------
     def rehearse(self, sig: Signature, new_word_ids: Iterable[int]) -> int:
@@ -172,8 +171,8 @@ class Memory:
             self._batch.deleted_links.append((link.from_id, link.to_id))
             if link.to_id == sig.id:
                 continue
-            other_map = self._map_id_of(link.to_id)
-            kind = LinkType.NEIGHBOR if link.type is LinkType.NEIGHBOR else loop_type(sig.map_id, other_map)
+            kind = (LinkType.NEIGHBOR if link.type is LinkType.NEIGHBOR
+                    else loop_type(sig.map_id, self.map_ids[link.to_id]))
             self.add_link(Link(sig.id, link.to_id, kind, T_t_c @ link.T_from_to, link.information))
         self.stm.remove(prev.id)
         del self.signatures[prev.id]
@@ -182,11 +181,7 @@ class Memory:
         self._batch.deleted_locations.append(prev.id)
         if self.last_loop_closure_id == prev.id:
             self.last_loop_closure_id = sig.id
-        self.on_graph_change(sig.id)
         return prev.id
-
-    def _map_id_of(self, node_id: int) -> int:
-        return self.map_ids[node_id]
 
     # -- STM -> WM ------------------------------------------------------------------------------
     def update_stm(self) -> None:
@@ -352,8 +347,7 @@ class Memory:
         for node, blobs in self._new_locations.items():
             sig = self.signatures.get(node)
             if sig is not None:
-                batch.locations.append((sig, blobs))
-                batch.in_wm[node] = node in self.signatures
+                batch.locations.append((sig, blobs))  # a new location starts in WM (in_wm = 1)
         for node in list(batch.weights):
             if node in self.signatures:
                 batch.weights[node] = self.signatures[node].weight
