@@ -104,7 +104,7 @@ def false_loop_closures(rows: list[dict], gt: Trajectory, gmap) -> dict:
         a, b = Gn.get(gmap.stamps_ns[link.from_id]), Gn.get(gmap.stamps_ns[link.to_id])
         if a is None or b is None:
             continue
-        E = transforms.inverse(transforms.inverse(a) @ b) @ link.T_from_to
+        E = link.residual(a, b)  # planar: same |t| and |yaw| as its inverse
         if np.linalg.norm(E[:2, 3]) > WRONG_LINK_DISTANCE_M or abs(transforms.yaw_of(E)) > WRONG_LINK_ANGLE_RAD:
             wrong.append({"from_id": link.from_id, "to_id": link.to_id, "type": link.type.value, "kept": kept,
                           "error_m": round(float(np.linalg.norm(E[:2, 3])), 3),
@@ -126,7 +126,7 @@ def link_errors(gmap, gt: Trajectory) -> dict:
             a, b = G.get(gmap.stamps_ns[link.from_id]), G.get(gmap.stamps_ns[link.to_id])
             if a is None or b is None:
                 continue
-            E = transforms.inverse(transforms.inverse(a) @ b) @ link.T_from_to
+            E = link.residual(a, b)  # planar: same |t| and |yaw| as its inverse
             t_err.append(float(np.linalg.norm(E[:2, 3])))
             r_err.append(float(np.degrees(abs(transforms.yaw_of(E)))))
         if t_err:

@@ -50,6 +50,10 @@ class Link:
     T_from_to: np.ndarray = field(default_factory=transforms.identity)
     information: np.ndarray = field(default_factory=lambda: default_information(1e-3))
 
+    def residual(self, pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
+        """4x4 error of two poses against the link: identity when ``pose_to = pose_from @ T_from_to``."""
+        return transforms.inverse(self.T_from_to) @ transforms.relative(pose_from, pose_to)
+
     def inverted(self) -> "Link":
         """The same constraint seen from the other end."""
         return Link(self.to_id, self.from_id, self.type, transforms.inverse(self.T_from_to), self.information)

@@ -499,7 +499,7 @@ class Rtabmap:
             if link.type is not LinkType.LOOP_INTER:
                 continue
             pair = tuple(sorted((map_ids[link.from_id], map_ids[link.to_id])))
-            residual = transforms.inverse(link.T_from_to) @ transforms.relative(poses[link.from_id], poses[link.to_id])
+            residual = link.residual(poses[link.from_id], poses[link.to_id])
             ok = (np.linalg.norm(residual[:3, 3]) < CONSENSUS_DISTANCE_M
                   and transforms.rotation_angle(residual) < CONSENSUS_ANGLE_RAD)
             counts = held.setdefault(pair, [0, 0])
@@ -545,7 +545,7 @@ def _max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: bo
         a, b = poses.get(link.from_id), poses.get(link.to_id)
         if a is None or b is None:
             continue
-        residual = transforms.inverse(link.T_from_to) @ transforms.relative(a, b)
+        residual = link.residual(a, b)
         info = np.diag(link.information)
         if planar:
             t_err = float(np.linalg.norm(residual[:2, 3]))
