@@ -64,7 +64,6 @@ class TransitionModel:
     """Cached Gaussian neighbourhoods of the transition model p(S_t = i | S_t-1 = j) (§III-C, 4)."""
 
     def __init__(self, params: BayesParams, graph: Graph) -> None:
-        self._params = params
         self._graph = graph
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         hops = np.arange(params.neighborhood + 1)
@@ -88,11 +87,8 @@ class TransitionModel:
                 for other in self._graph.neighbors(node):
                     self._cache.pop(other, None)
 
-    def clear(self) -> None:
-        self._cache.clear()
-
     def neighbourhood(self, node_id: int) -> tuple[np.ndarray, np.ndarray]:
-        """(ids, unnormalised Gaussian weights) of the nodes within ``neighborhood`` hops."""
+        """(ids, unnormalised Gaussian weights) of the nodes whose transition weight is not negligible."""
         cached = self._cache.get(node_id)
         if cached is None:
             hops = self._graph.hops_from(node_id, self._radius)
