@@ -799,6 +799,11 @@ class Database:
                           "coalesce((SELECT max(map_id) FROM nodes), -1))")
         return int(row[0][0])
 
+    def max_frame_index(self) -> int:
+        """Largest frame index with statistics, or -1 when none (a reopened map continues after it)."""
+        row = self._query("SELECT max(frame_index) FROM statistics")
+        return -1 if row[0][0] is None else int(row[0][0])
+
     def load_statistics(self) -> list[dict]:
         """Per-frame statistics rows, by increasing frame index."""
         return [json.loads(r[0]) for r in self._query("SELECT data FROM statistics ORDER BY frame_index")]

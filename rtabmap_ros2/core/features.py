@@ -172,7 +172,7 @@ class FeatureExtractor:
         """Apply T_response, sort strongest first (ties by position), keep T_maxFeatures."""
         n = len(keypoints)
         if n == 0 or descriptors is None:
-            return self._empty()
+            return self.empty()
         points = np.array([kp.pt for kp in keypoints], np.float32).reshape(n, 2)
         responses = np.array([kp.response for kp in keypoints], np.float32)
         keep = np.ones(n, bool)
@@ -192,7 +192,8 @@ class FeatureExtractor:
             responses=np.ascontiguousarray(responses[order]),
         )
 
-    def _empty(self) -> Features:
+    def empty(self) -> Features:
+        """No features, with this extractor's descriptor type and size."""
         dtype = np.uint8 if self.binary else np.float32
         return Features(np.zeros((0, 2), np.float32), np.zeros((0, self.descriptor_size), dtype),
                         np.zeros(0, np.float32))

@@ -130,8 +130,7 @@ class Rtabmap:
         self.memory = Memory(self.params, self.db, self.extractor.binary)
         self.bayes = BayesFilter(self.params.bayes, self.memory.graph)
         self.memory.on_graph_change = self.bayes.transitions.invalidate_around
-        statistics = self.db.load_statistics()
-        self.frame_index = max((int(r.get("frame_index", -1)) for r in statistics), default=-1) + 1
+        self.frame_index = self.db.max_frame_index() + 1
         self.localization_mode = False
         self.localization_pose: Optional[np.ndarray] = None
         self._optimized: dict[int, np.ndarray] = {}
@@ -280,7 +279,7 @@ class Rtabmap:
     # -- steps ---------------------------------------------------------------------------------
     def _extract(self, frame: SensorFrame) -> Features:
         if frame.rgb is None:
-            return Features(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32))
+            return self.extractor.empty()
         return self.extractor.extract(frame.rgb)
 
     def _maybe_start_new_map(self, frame: SensorFrame) -> bool:
@@ -326,7 +325,7 @@ class Rtabmap:
         if bad:
             word_ids = np.zeros(0, np.int64)
             new_words: list[int] = []
-            features = Features(np.zeros((0, 2), np.float32), features.descriptors[:0], np.zeros(0, np.float32))
+            features = self.extractor.empty()
         else:
             before = memory.vocabulary.next_word_id
             word_ids = memory.quantize(features.descriptors)

@@ -232,10 +232,12 @@ def test_statistics_round_trip(db):
     rows = [{"frame_index": i, "stamp_ns": 10 * i, "location_id": i + 1, "process_time_ms": np.float64(1.5 * i),
              "loop_closure_type": "" if i else "loop_intra", "new_map": bool(i == 0),
              "timings_ms": {"features": 2.5}} for i in range(4)]
+    assert db.max_frame_index() == -1
     db.write(WriteBatch(statistics=rows[2:]))
     db.write(WriteBatch(statistics=rows[:2]))
     loaded = db.load_statistics()
     assert [r["frame_index"] for r in loaded] == [0, 1, 2, 3]
+    assert db.max_frame_index() == 3
     assert loaded[3] == {**rows[3], "process_time_ms": 4.5}
     with pytest.raises(DatabaseError, match="frame_index"):
         db.write(WriteBatch(statistics=[{"stamp_ns": 1}]))
