@@ -436,7 +436,7 @@ class Rtabmap:
             old = memory.signatures[hypothesis.location_id]
             try:
                 link = self._verify(sig, old)
-                poses = self._optimized if old.id in self._optimized else self._optimize_component(old.id)
+                poses = self._optimized if old.id in self._optimized else self._optimize_component(old.id)[0]
             except (RegistrationError, OptimizationError) as exc:
                 stats.rejected_loop_closure_id = old.id
                 log.debug("localization on %d rejected: %s", old.id, exc)
@@ -448,8 +448,9 @@ class Rtabmap:
         watch.lap("verification")
         return hypothesis
 
-    def _optimize_component(self, root: int) -> dict[int, np.ndarray]:
-        """Optimised poses of the WM nodes connected to ``root`` (root at its odometry pose).
+    def _optimize_component(self, root: int) -> tuple[dict[int, np.ndarray], list[Link]]:
+        """Optimised poses of the WM nodes connected to ``root`` (root at its odometry pose), and
+        the links among them.
 
         Loop closures the robust optimiser finds inconsistent stay in the graph, inactive for
         this solution: when later loop closures outvote them they can be right after all (a
@@ -469,7 +470,7 @@ class Rtabmap:
             # A tree of neighbour links: chaining them is the optimum. (Re-using the previous
             # poses here fed round-off back every frame: rotations lost orthonormality
             # exponentially, x2 per frame, and poses overflowed after ~1,000 frames.)
-            return chain_poses(root, root_pose, links)
+            return chain_poses(root, root_pose, links), links
         guess = _warm_start(root, root_pose, links, self._optimized)
         if guess is None or not self._fits_inter_session_majority(guess, links):
             guess = consensus_guess(root, root_pose, links)
@@ -488,7 +489,7 @@ class Rtabmap:
                     memory.undo_loop_closure(link, before)
                 self._new_loops = []
                 return self._optimize_component(root)
-        return result.poses
+        return result.poses, links
 
     def _fits_inter_session_majority(self, poses: dict[int, np.ndarray], links: list[Link]) -> bool:
         """True when, for every pair of sessions, most of their loop closures hold in ``poses``."""
@@ -515,10 +516,9 @@ class Rtabmap:
         if memory.signatures[newest].T_odom_base is None:
             return False
         had_loops = bool(self._new_loops)
-        poses = self._optimize_component(newest)
+        poses, links = self._optimize_component(newest)
         self._optimized = poses
-        self._local_links = [link for link in _links_within(memory.graph, set(poses))
-                             if link.key() not in self._inactive_links]
+        self._local_links = [link for link in links if link.key() not in self._inactive_links]
         self._T_map_odom = poses[newest] @ transforms.inverse(memory.signatures[newest].T_odom_base)
         return had_loops and not any(memory.graph.link(l.from_id, l.to_id) and l.key() not in self._inactive_links
                                      for l, _ in self._new_loops)
