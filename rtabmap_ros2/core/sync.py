@@ -133,7 +133,6 @@ class FrameSynchronizer:
     def _clear_timeline(self) -> None:
         for q in self._queues.values():
             q.clear()
-        self._newest_ns: Optional[int] = None
         self._stream_newest_ns: dict[str, int] = {}
         self._last_pivot_ns: Optional[int] = None   # newest pivot stamp already decided
         self._anchor_ns: Optional[int] = None       # start of the rate limiter's periods
@@ -162,8 +161,6 @@ class FrameSynchronizer:
             self._clear_timeline()
         if previous is None or stamp_ns > previous:
             self._stream_newest_ns[stream] = stamp_ns
-        if self._newest_ns is None or stamp_ns > self._newest_ns:
-            self._newest_ns = stamp_ns
         if stream == self.pivot and self._last_pivot_ns is not None and stamp_ns <= self._last_pivot_ns:
             self.dropped["late"] += 1
             return []
