@@ -197,6 +197,11 @@ class GraphParams:
         3.0, "Reject the frame's new loop closures when, after optimising with them, a link's error "
         "exceeds this many standard deviations (RTAB-Map's RGBD/OptimizeMaxError; 0 = no check): "
         "a wrong loop closure (perceptual aliasing) bends the odometry chain", "std dev")
+    merge_min_separation: float = _p(
+        5.0, "A loop closure joining two maps that are not connected yet (an inter-session merge) "
+        "is held until a second one, between places at least this far from the first on both maps, "
+        "agrees on the maps' alignment: perceptual aliasing (look-alike posters, symmetric corridors) "
+        "repeats over a few metres, a true overlap does not end there (0 = merge on the first)", "m")
     odom_reset_distance: float = _p(
         0.05, "A new map starts when odometry jumps back within this distance of the origin after "
         "moving away from it (odometry reset)", "m")
@@ -213,6 +218,7 @@ class GraphParams:
         _check(0.0 < self.robust_reject_scale < 1.0, "graph.robust_reject_scale", self.robust_reject_scale,
                "in (0, 1)")
         _check(self.optimize_max_error >= 0, "graph.optimize_max_error", self.optimize_max_error, ">= 0")
+        _check(self.merge_min_separation >= 0, "graph.merge_min_separation", self.merge_min_separation, ">= 0")
         _check(self.odom_reset_distance > 0, "graph.odom_reset_distance", self.odom_reset_distance, "> 0")
         _check(self.odom_default_variance > 0, "graph.odom_default_variance", self.odom_default_variance, "> 0")
         _check(self.loop_closure_variance > 0, "graph.loop_closure_variance", self.loop_closure_variance, "> 0")

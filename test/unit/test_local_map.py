@@ -103,3 +103,60 @@ def test_max_error_ratio_flags_a_link_bent_beyond_its_standard_deviation():
     assert _max_error_ratio(poses, [link], planar=True) == pytest.approx(2.0, rel=1e-6)
     poses[2] = transforms.from_xy_yaw(1.0, 0, np.deg2rad(2.0))
     assert _max_error_ratio(poses, [link], planar=True) == pytest.approx(np.deg2rad(2.0) / 0.01, rel=1e-3)
+
+
+def _two_corridor_sessions(tmp_path):
+    """Rtabmap whose memory holds two unconnected sessions driving one corridor (0.5 m steps).
+
+    Session 0 = nodes 1..30 from odometry origin x = 0; session 1 = nodes 31..60, 0.5 m to the
+    side, its odometry frame starting at world (0, 0.5): world = odom for session 0, and
+    world = T_world_odom1 @ odom for session 1.
+    """
+    from rtabmap_ros2.core.params import Params
+    from rtabmap_ros2.core.rtabmap import Rtabmap
+    from rtabmap_ros2.core.signature import Signature
+
+    rtabmap = Rtabmap(Params(), tmp_path / "merge.db")
+    memory = rtabmap.memory
+    for map_id, first in ((0, 1), (1, 31)):
+        memory.map_id = map_id
+        for k in range(30):
+            sig = Signature(id=first + k, map_id=map_id, stamp_ns=first + k,
+                            T_odom_base=transforms.from_xy_yaw(0.5 * k, 0.0, 0.0))
+            neighbor = None
+            if k:
+                neighbor = Link(first + k - 1, first + k, LinkType.NEIGHBOR,
+                                transforms.from_xy_yaw(0.5, 0.0, 0.0), ODOM_INFO)
+            memory.add_location(sig, None, neighbor)
+    return rtabmap
+
+
+def _inter_link(new_id: int, old_id: int, error_xy=(0.0, 0.0)) -> Link:
+    """Session-1 node ``new_id`` -> session-0 node ``old_id`` (true relative pose, plus an error)."""
+    T_world_new = transforms.from_xy_yaw(0.5 * (new_id - 31), 0.5, 0.0)
+    T_world_old = transforms.from_xy_yaw(0.5 * (old_id - 1), 0.0, 0.0)
+    T = transforms.inverse(T_world_new) @ T_world_old @ transforms.from_xy_yaw(*error_xy, 0.0)
+    return Link(new_id, old_id, LinkType.LOOP_INTER, T, ODOM_INFO)
+
+
+def test_a_map_merge_waits_for_a_second_agreeing_loop_closure_far_enough_away(tmp_path):
+    rtabmap = _two_corridor_sessions(tmp_path)
+    try:
+        # A look-alike place 15 m away: held, nothing to judge it against.
+        assert rtabmap._merge_evidence(_inter_link(35, 5, error_xy=(15.0, 0.0))) == []
+        # A true one: held too (it disagrees with the false one).
+        first_true = _inter_link(37, 7)
+        assert rtabmap._merge_evidence(first_true) == []
+        # A true one only 1.5 m further: not independent evidence yet.
+        near_true = _inter_link(40, 10)
+        assert rtabmap._merge_evidence(near_true) == []
+        # A true one 6 m further on both maps agrees with the first true one: the merge happens.
+        second_true = _inter_link(49, 19)
+        assert rtabmap._merge_evidence(second_true) == [first_true, near_true, second_true]
+        for link in (first_true, near_true, second_true):
+            rtabmap.memory.add_loop_closure(link)
+        # Once connected, a loop closure is added at once (the optimiser judges it).
+        later = _inter_link(52, 22)
+        assert rtabmap._merge_evidence(later) == [later]
+    finally:
+        rtabmap.close()
