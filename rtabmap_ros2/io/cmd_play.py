@@ -25,6 +25,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--delay", type=float, default=0.5, metavar="S",
                         help="wait S seconds after creating the publishers so subscribers discover them "
                              "(default 0.5)")
+    parser.add_argument("--ack-timeout", type=float, default=None, metavar="S",
+                        help="after the last message, wait up to S seconds until reliable subscribers have "
+                             "acknowledged every message (default 10; 0: exit at once)")
     parser.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[], dest="ros_args",
                         help="ROS arguments for the player node (remapping, namespace...)")
     parser.set_defaults(func=run)
@@ -39,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
-    from rtabmap_ros2.ros.play import play_bag
+    from rtabmap_ros2.ros.play import ACK_TIMEOUT_S, play_bag
 
     log = logging.getLogger("rtabmap_ros2.play")
     stop = threading.Event()
@@ -49,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
     node = Node("rtabmap_play")
     try:
         stats = play_bag(args.bag, node, rate=args.rate, loop=args.loop, topics=args.topics, clock=args.clock,
-                         start_offset_s=args.start_offset, delay_s=args.delay, stop=stop)
+                         start_offset_s=args.start_offset, delay_s=args.delay, stop=stop,
+                         ack_timeout_s=ACK_TIMEOUT_S if args.ack_timeout is None else args.ack_timeout)
         for topic, count in sorted(stats.published.items()):
             log.info("%s: %d messages", topic, count)
         if args.clock:

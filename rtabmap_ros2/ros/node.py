@@ -12,8 +12,8 @@ Publications (frame ``map_frame_id``)
     transient local), ``mapGraph`` (visualization_msgs/MarkerArray), ``info``
     (diagnostic_msgs/DiagnosticArray: one status ``rtabmap`` whose key/values are the frame's
     ``Statistics.to_dict()`` plus the node's ``node_latency_ms``, ``node_frames_dropped``,
-    ``node_paused``), ``localization_pose`` (geometry_msgs/PoseStamped, localization mode only);
-    TF ``map_frame_id -> odom_frame_id`` when ``tf2_ros`` can be imported.
+    ``node_messages_lost``, ``node_paused``), ``localization_pose`` (geometry_msgs/PoseStamped,
+    localization mode only); TF ``map_frame_id -> odom_frame_id`` when ``tf2_ros`` can be imported.
 Services
     ``get_map`` (nav_msgs/GetMap), ``export_global_map`` (std_srvs/Trigger), and std_srvs/Empty:
     ``publish_map``, ``reset``, ``pause``, ``resume``, ``trigger_new_map``, ``backup``,
@@ -23,14 +23,23 @@ Parameters
 
 Threads: sensor callbacks (one mutually exclusive group) convert each message and feed the one
 :class:`~rtabmap_ros2.core.sync.FrameSynchronizer`; a completed set becomes a ``SensorFrame`` put
-in a one-slot mailbox (newest wins, replaced frames are counted as dropped). One worker thread
+in a queue of :data:`FRAME_QUEUE_SIZE` frames (when it is full the oldest is dropped and counted in
+``frames_dropped``). The synchroniser already keeps one set per detection period, so the queue only
+absorbs sets that arrive together (a reliable transport repairing a lost sample releases the sets
+held behind it at once) instead of dropping all but the newest. One worker thread
 owns the core (SQLite connections belong to the thread that opened them): it creates the
-``Rtabmap``, runs ``process`` on the mailbox's frame and publishes, and runs the services' core
+``Rtabmap``, runs ``process`` on the queued frames in order and publishes, and runs the services' core
 calls (reset, backup...) handed to it as commands. Services run in their own callback group, so a
 long export does not stall the sensors.
 
 Bad input (wrong encoding, sizes that disagree, NaN/inf, empty scans, timestamps going backwards,
 NaN odometry) is logged once per topic and kind, counted, and the frame dropped.
+
+Messages lost in transport (DDS reports gaps in a writer's sequence numbers, the ``message_lost``
+event) are counted per topic in ``messages_lost`` and logged once per topic. With ``qos:=sensor_data``
+(best effort), Fast DDS loses large images under CPU load even between two processes on one
+machine (measured by ``bench/bench_node.py``); ``qos:=reliable`` receives every frame from a
+reliable publisher such as ``rtabmap-ros2 play``.
 
 Shutdown: rclpy (7.1) installs handlers for SIGINT and SIGTERM that stop ``spin``; ``main``'s
 ``finally`` then destroys the node, which joins the worker (finishing the frame in flight) and
@@ -54,6 +63,7 @@ from nav_msgs.msg import OccupancyGrid as OccupancyGridMsg
 from nav_msgs.msg import Odometry, Path as PathMsg
 from nav_msgs.srv import GetMap
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -74,6 +84,11 @@ NS_PER_S = 1_000_000_000
 QUEUE_DEPTH = 10
 # How often the silent-topic check runs (s).
 SILENCE_CHECK_PERIOD_S = 1.0
+# Synchronised frames waiting for the worker. A reliable Fast DDS writer resends a lost sample at its
+# next heartbeat (every 3 s by default), and the sets held behind it then complete together: stalls
+# of 5-6 s were measured (bench_node.py, 2 loaded cores). 10 frames, the default sync_queue_size,
+# hold every set the synchroniser can still complete after such a stall; beyond, the oldest goes.
+FRAME_QUEUE_SIZE = 10
 # Worker wake-up period when idle, so shutdown is noticed (s).
 WORKER_POLL_S = 0.1
 # Latencies kept for `latencies_s` (benchmarks).
@@ -162,8 +177,9 @@ class RtabmapNode(Node):
 
         # Bookkeeping read by tests and benchmarks.
         self.frames_processed = 0
-        self.frames_dropped = 0          # replaced in the 1-slot mailbox before being processed
+        self.frames_dropped = 0          # pushed out of the full frame queue before being processed
         self.bad_messages: dict[tuple[str, str], int] = {}
+        self.messages_lost: dict[str, int] = {}   # topic -> messages lost in transport (DDS gaps)
         self.latencies_s: deque[float] = deque(maxlen=LATENCY_HISTORY)
         self.last_statistics = None
         self.paused = False
@@ -184,10 +200,10 @@ class RtabmapNode(Node):
         self._camera = None
         self._needs_camera = p.subscribe_rgb or p.subscribe_depth
 
-        # Worker: 1-slot mailbox (newest wins) and a queue of commands from the services.
-        self._slot: Optional[tuple[SensorFrame, float]] = None
+        # Worker: a bounded queue of frames (oldest dropped when full) and the services' commands.
+        self._frames: deque[tuple[SensorFrame, float]] = deque()
         self._commands: list[_Command] = []
-        self._slot_lock = threading.Lock()
+        self._worker_lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._core = None
@@ -228,10 +244,32 @@ class RtabmapNode(Node):
         if p.subscribe_depth:
             table.append(("depth", "depth/image", Image, conv.depth_from_msg))
         for stream, topic, msg_type, convert in table:
-            sub = self.create_subscription(
-                msg_type, topic, self._callback(stream, convert), qos, callback_group=self._sensor_group)
+            sub = self._create_sensor_subscription(msg_type, topic, self._callback(stream, convert), qos)
             self._topics[stream] = sub.topic_name
         self.create_timer(SILENCE_CHECK_PERIOD_S, self._check_silence, callback_group=self._sensor_group)
+
+    def _create_sensor_subscription(self, msg_type: type, topic: str, callback: Callable, qos):
+        """A subscription in the sensor group that also reports messages lost in transport."""
+        events = SubscriptionEventCallbacks(message_lost=self._lost_callback(topic))
+        try:
+            sub = self.create_subscription(msg_type, topic, callback, qos, callback_group=self._sensor_group,
+                                           event_callbacks=events)
+        except UnsupportedEventTypeError:   # an RMW without the message_lost event
+            sub = self.create_subscription(msg_type, topic, callback, qos, callback_group=self._sensor_group)
+        return sub
+
+    def _lost_callback(self, topic: str) -> Callable:
+        def on_lost(info) -> None:
+            name = self.resolve_topic_name(topic)
+            count = self.messages_lost.get(name, 0) + info.total_count_change
+            self.messages_lost[name] = count
+            if count == info.total_count_change:
+                hint = (" With qos:=sensor_data (best effort) large messages are lost under load: "
+                        "use qos:=reliable if the publisher is reliable (rtabmap-ros2 play is)."
+                        if self.params.node.qos == "sensor_data" else "")
+                self.get_logger().warning(f"{info.total_count_change} message(s) lost in transport on {name} "
+                                          f"(further losses are counted, not logged).{hint}")
+        return on_lost
 
     def _callback(self, stream: str, convert: Callable) -> Callable:
         def on_message(msg) -> None:
@@ -265,7 +303,7 @@ class RtabmapNode(Node):
             self._submit(synced, arrival)
 
     def _submit(self, synced: SyncedSet, arrival: float) -> None:
-        """A synchronised set -> SensorFrame -> the worker's 1-slot mailbox (newest wins)."""
+        """A synchronised set -> SensorFrame -> the worker's frame queue (oldest dropped when full)."""
         values = synced.values
         frame = SensorFrame(stamp_ns=synced.stamp_ns, rgb=values.get("rgb"), depth_m=values.get("depth"),
                             scan=values.get("scan"))
@@ -284,10 +322,11 @@ class RtabmapNode(Node):
             return
         if self.paused:
             return
-        with self._slot_lock:
-            if self._slot is not None:
+        with self._worker_lock:
+            if len(self._frames) >= FRAME_QUEUE_SIZE:
+                self._frames.popleft()
                 self.frames_dropped += 1
-            self._slot = (frame, arrival)
+            self._frames.append((frame, arrival))
         self._wake.set()
 
     def _bad(self, topic: str, kind: str, reason: str) -> None:
@@ -329,16 +368,17 @@ class RtabmapNode(Node):
         try:
             while True:
                 self._wake.wait(WORKER_POLL_S)
-                with self._slot_lock:
-                    item, self._slot = self._slot, None
+                with self._worker_lock:
+                    item = self._frames.popleft() if self._frames else None
                     commands, self._commands = self._commands, []
-                    self._wake.clear()
+                    if not self._frames:
+                        self._wake.clear()
                 for command in commands:
                     command.run()
                 if item is not None and not self._stop.is_set():
                     self._process(*item)
                 if self._stop.is_set():
-                    with self._slot_lock:
+                    with self._worker_lock:
                         if not self._commands:
                             break
         finally:
@@ -347,7 +387,7 @@ class RtabmapNode(Node):
     def _in_worker(self, fn: Callable[[], Any]) -> Any:
         """Run ``fn`` (a core call) in the worker thread and return its result or raise its error."""
         command = _Command(fn)
-        with self._slot_lock:
+        with self._worker_lock:
             if self._stop.is_set() or not self._worker.is_alive():
                 raise RtabmapError("the rtabmap worker has stopped (node shutting down)")
             self._commands.append(command)
@@ -378,7 +418,7 @@ class RtabmapNode(Node):
             self._pub_map.publish(conv.grid_to_msg(grid, stamp, map_frame))
         self._pub_graph.publish(conv.graph_to_markers(local.poses, local.links, stamp, map_frame))
         extra = {"node_latency_ms": round(latency * 1e3, 3), "node_frames_dropped": self.frames_dropped,
-                 "node_paused": self.paused}
+                 "node_messages_lost": sum(self.messages_lost.values()), "node_paused": self.paused}
         self._pub_info.publish(conv.statistics_to_msg({**stats.to_dict(), **extra}, stamp, map_frame))
         self._tf.sendTransform(conv.transform_to_msg(local.T_map_odom, stamp, map_frame,
                                                      self.params.node.odom_frame_id))
@@ -436,8 +476,8 @@ class RtabmapNode(Node):
 
     def reset(self) -> None:
         """Forget everything (database deleted and restarted) and clear the published map."""
-        with self._slot_lock:
-            self._slot = None
+        with self._worker_lock:
+            self._frames.clear()
         self._in_worker(lambda: self._core.reset())
         with self._sync_lock:
             self._sync.reset()

@@ -33,7 +33,8 @@ from visualization_msgs.msg import MarkerArray  # noqa: E402
 
 from rtabmap_ros2.errors import RtabmapError  # noqa: E402
 from rtabmap_ros2.ros import conversions as conv  # noqa: E402
-from rtabmap_ros2.ros.node import RtabmapNode, checked_export_path, new_export_folder  # noqa: E402
+from rtabmap_ros2.ros.node import (  # noqa: E402
+    FRAME_QUEUE_SIZE, RtabmapNode, checked_export_path, new_export_folder)
 
 pytestmark = pytest.mark.ros
 
@@ -214,6 +215,37 @@ def test_mapping_publishes_path_map_graph_info(harness, frames):
     assert resolution == pytest.approx(0.05)
     assert (grid == 100).any() and (grid == 0).any() and (grid == -1).any()
     assert harness.node.frames_dropped == 0 and not harness.node.bad_messages
+
+
+def _hold_worker(node) -> threading.Event:
+    """Keep the node's worker busy (a command waiting on the returned event) until it is set."""
+    release, started = threading.Event(), threading.Event()
+
+    def busy():
+        started.set()
+        release.wait()
+    threading.Thread(target=node._in_worker, args=(busy,), daemon=True).start()
+    assert started.wait(TIMEOUT_S)
+    return release
+
+
+def test_frames_completed_together_are_all_processed(harness, frames):
+    """Sets that complete at once (a reliable transport repairing a lost sample releases the ones held
+    behind it) wait in the frame queue instead of replacing each other; past its size the oldest go."""
+    node, t = harness.node, harness.tester
+    burst = frames[:FRAME_QUEUE_SIZE + 2]
+    assert len(burst) == FRAME_QUEUE_SIZE + 2, "N_FRAMES too small for this test"
+    release = _hold_worker(node)
+    for f in burst:
+        t.publish_frame(f)
+    assert wait_for(lambda: node._sync.emitted == len(burst))
+    release.set()
+    assert wait_for(lambda: t.count("info") == FRAME_QUEUE_SIZE)
+    assert node.frames_processed == FRAME_QUEUE_SIZE and node.frames_dropped == 2
+    # The newest frames are kept, in order.
+    stamps = [m.header.stamp for m in t.received["info"]]
+    assert stamps == [conv.header(f.stamp_ns, "map").stamp for f in burst[2:]]
+    assert not node.messages_lost   # reliable, in one process: nothing lost in transport
 
 
 def test_map_is_latched_for_late_subscribers(harness, frames, context):

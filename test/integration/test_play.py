@@ -100,6 +100,7 @@ def test_play_publishes_every_message_in_order_with_timing(context, bag, receive
     finally:
         player.destroy_node()
     assert stats.published == {"/rgb/image": N_IMAGES, "/chatter": N_IMAGES}
+    assert stats.unacknowledged == []  # the reliable /chatter subscriber acknowledged every message
     assert "/tf" in stats.skipped_topics  # tf2_msgs has no PyPI wheel here
     assert _wait_for(lambda: len(receiver.images) == N_IMAGES and len(receiver.strings) == N_IMAGES)
     assert receiver.strings == [f"s{i}" for i in range(N_IMAGES)]
@@ -140,6 +141,8 @@ def test_play_refuses_bad_input(context, bag, tmp_path):
             play_bag(bag, player, topics=["/nope"])
         with pytest.raises(BagError, match="rate"):
             play_bag(bag, player, rate=0.0)
+        with pytest.raises(BagError, match="ack-timeout"):
+            play_bag(bag, player, ack_timeout_s=-1.0)
     finally:
         player.destroy_node()
 
