@@ -154,7 +154,9 @@ def targets_of(results: list[dict]) -> dict | None:
 
 
 def results_path(args: argparse.Namespace) -> Path:
-    return RESULTS / ("detect_quick.json" if args.quick and args.n is None else "detect.json")
+    if args.quick and args.n is None:
+        return RESULTS / "detect_quick.json"
+    return RESULTS / ("detect.json" if args.n in (None, FULL_IMAGES) else f"detect_{args.n}.json")
 
 
 def previous_runs(n: int, args: argparse.Namespace, thresholds) -> list[dict]:

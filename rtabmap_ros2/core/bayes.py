@@ -23,6 +23,9 @@ NEW_LOCATION = -1
 _EPSILON = 1e-9
 # Transition weights (relative to the centre's 1) below this are dropped from neighbourhoods.
 NEGLIGIBLE_TRANSITION = 1e-6
+# A column of the prior whose excess over the median is below this fraction of the largest
+# excess is not spread over its neighbourhood (see BayesFilter.predict).
+NEGLIGIBLE_EXCESS = 1e-3
 
 
 @dataclass(frozen=True)
@@ -133,18 +136,33 @@ class BayesFilter:
             belief[1:] = (1.0 - p.virtual_place_prior) * prior_new / n
         # Transitions from S_t-1 = j (§III-C, 3 and 4).
         belief[0] += (1.0 - p.loop_closure_prior) * prior.sum()
-        active = np.flatnonzero(prior > _EPSILON)
+        if not n:
+            return belief
+        # Columns whose belief is negligible are not spread over their neighbourhood: their mass
+        # (and every column's floor, its prior up to the median) goes uniformly over WM, the
+        # limit of a Gaussian spread once loop closures make the graph small-world and a
+        # neighbourhood covers most of it. Spreading every column cost O(WM x graph) per frame
+        # (the Bayes step took 1.4 s at 3,200 locations); on the 3,000-image sequence this keeps
+        # precision / recall (39.9 / 98.2 % vs 39.5 / 97.4 %) and recall at 100 % precision
+        # (26.1 % vs 28.5 %) at 0.6 x the median pTime (bench/bench_detect.py).
+        floor = np.minimum(prior, np.median(prior))
+        excess = prior - floor
+        spreads = excess > max(NEGLIGIBLE_EXCESS * excess.max(), _EPSILON)
+        belief[1:] += p.loop_closure_prior * np.where(spreads, floor, prior).sum() / n
+        active = np.flatnonzero(spreads)
         if active.size:
             hoods = [self.transitions.neighbourhood(int(wm_ids[col])) for col in active]
             ids = np.concatenate([h[0] for h in hoods])
             weights = np.concatenate([h[1] for h in hoods])
             cols = np.repeat(active, [h[0].size for h in hoods])
             # Keep the neighbours that are WM hypotheses, then normalise each column to 0.9.
-            pos = np.minimum(np.searchsorted(wm_ids, ids), n - 1)
-            in_wm = wm_ids[pos] == ids
+            column_of = np.full(max(int(ids.max()), int(wm_ids[-1])) + 1, -1, dtype=np.int64)
+            column_of[wm_ids] = np.arange(n)
+            pos = column_of[ids]
+            in_wm = pos >= 0
             pos, weights, cols = pos[in_wm], weights[in_wm], cols[in_wm]
             column_sums = np.bincount(cols, weights=weights, minlength=n)
-            spread = p.loop_closure_prior * weights / column_sums[cols] * prior[cols]
+            spread = p.loop_closure_prior * weights / column_sums[cols] * excess[cols]
             belief[1:] += np.bincount(pos, weights=spread, minlength=n)
         return belief
 

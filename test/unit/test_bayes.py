@@ -109,3 +109,22 @@ def test_single_hypothesis_is_never_accepted():
     bayes.update(np.array([1]), {NEW_LOCATION: 0.1, 1: 10.0})
     assert bayes.highest().location_id == 1
     assert not bayes.accepted(bayes.highest())
+
+
+def test_prediction_spreads_the_peak_and_pools_the_uniform_floor():
+    # Every location has a floor of belief and location 20 a peak: mass is kept, the floor stays
+    # uniform, the peak keeps its Gaussian shape on top of it.
+    ids = np.arange(1, 41)
+    graph = chain(ids.tolist(), loops=[(5, 35)])
+    bayes = BayesFilter(BayesParams(), graph)
+    floor = 0.5 / len(ids)
+    bayes.posterior = {NEW_LOCATION: 0.2, **{int(i): floor for i in ids}}
+    bayes.posterior[20] += 0.3
+    belief = bayes.predict(ids)
+    assert belief.sum() == pytest.approx(1.0)
+    around = belief[1:]
+    assert around.argmax() == 19
+    base = around[0]  # far from the peak: floor and the uniform transition from S_t-1 = -1 only
+    np.testing.assert_allclose(around[30:], base)
+    ratio = (around[19] - base) / (around[20] - base)
+    assert ratio == pytest.approx(math.exp(0.5 / 1.6 ** 2), rel=1e-6)
