@@ -7,9 +7,13 @@
    run: the naive ``np.array(list(msg.data))`` read LIBRARIES.md warns against.
 2. Latency from the last message of a synchronised set to ``mapPath`` at the node's detection rate
    (1 Hz), with a simulated session written to a bag and played in real time by ``play`` in a
-   subprocess; frames dropped by the node's 1-slot worker queue (target 0), once with the default
-   ``qos:=sensor_data`` (best effort) and once with ``qos:=reliable``. Needs the core and the
-   simulator; skipped with a message otherwise.
+   subprocess, once with the default ``qos:=sensor_data`` (best effort) and once with
+   ``qos:=reliable``. Frames processed out of those in the bag (target: all), and where the others
+   went: messages lost in transport (DDS ``message_lost`` events, per topic), sets the synchroniser
+   dropped, frames pushed out of the node's frame queue (``frames_dropped_queue``, target 0).
+   The 1-minute load average before and after each run is recorded: the loss with best effort
+   grows with the CPU load of the machine. Needs the core and the simulator; skipped with a
+   message otherwise.
 
 Prints a table and writes ``bench/results/node.json``.
 """
@@ -98,22 +102,28 @@ def bench_latency(quick: bool, qos: str) -> dict | None:
         executor.add_node(node)
         thread = threading.Thread(target=executor.spin, daemon=True)
         thread.start()
+        load_before = os.getloadavg()[0]
         t0 = time.monotonic()
         play = subprocess.run([sys.executable, "-m", "rtabmap_ros2.io.cli", "play", str(bag), "--delay", "2"],
                               env=env, capture_output=True, text=True, timeout=600)
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and node.frames_processed < count:
+        # play returns once reliable subscribers acknowledged everything; then let the queue drain.
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and node.frames_processed + node.frames_dropped < node._sync.emitted:
             time.sleep(0.1)
         wall = time.monotonic() - t0
         latencies = np.array(node.latencies_s) * 1e3
         result = {
-            "frames_in_bag": count, "frames_processed": node.frames_processed,
-            "frames_dropped_mailbox": node.frames_dropped,
+            "frames_in_bag": count, "sets_synchronised": node._sync.emitted,
+            "frames_processed": node.frames_processed,
+            "frames_dropped_queue": node.frames_dropped,
+            "messages_lost_in_transport": dict(node.messages_lost),
             "sync_dropped": dict(node._sync.dropped),
             "bad_messages": {f"{t} ({k})": n for (t, k), n in node.bad_messages.items()},
             "latency_median_ms": float(np.median(latencies)) if latencies.size else None,
             "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else None,
             "wall_s": wall, "play_returncode": play.returncode,
+            "play_all_acknowledged": "did not acknowledge" not in play.stderr,
+            "load_average_1min": [load_before, os.getloadavg()[0]],
         }
         executor.shutdown()
         thread.join(timeout=10)
