@@ -145,6 +145,8 @@ class Rtabmap:
         self._new_loops: list[tuple[Link, tuple[int, int, int]]] = []
         # Verified loop closures that would join two unconnected maps, waiting for agreement.
         self._merge_candidates: list[Link] = []
+        # Last optimised pose of every node that was in a local map (an old map's own frame).
+        self._map_poses: dict[int, np.ndarray] = {}
         self._inactive_links: set[tuple[int, int]] = set()
         self._grid: Optional[GridAccumulator] = None
         self._grid_poses: dict[int, np.ndarray] = {}
@@ -211,6 +213,7 @@ class Rtabmap:
             stats.transferred = len(transferred)
             for node in transferred:
                 self._optimized.pop(node, None)
+                self._map_poses.pop(node, None)
         watch.lap("transfer")
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
@@ -401,9 +404,10 @@ class Rtabmap:
         (look-alike posters, symmetric corridors) passes RANSAC and ICP: measured on the simulated
         5 sessions, the first inter-session loop closure of session 2 was 43 m off and then made
         the true ones look wrong. So the merge waits (the 2014 paper's §IV asks for this kind of
-        safety for multi-session): it happens when a second loop closure to the same old session,
-        from places at least ``graph.merge_min_separation`` apart on both maps, agrees with a held
-        one on the alignment of the two maps' odometry frames. It and every held one agreeing
+        safety for multi-session): it happens when a second loop closure to the same old map, from
+        places at least ``graph.merge_min_separation`` apart on both maps, agrees with a held one
+        on the alignment of the two maps (current session: odometry; old map: its last optimised
+        poses, which stay consistent over the sessions it merged). It and every held one agreeing
         with it are then added.
         """
         memory = self.memory
@@ -416,21 +420,24 @@ class Rtabmap:
         self._merge_candidates = [c for c in self._merge_candidates
                                   if c.from_id in signatures and c.to_id in signatures]
         new_from, new_to = signatures[link.from_id], signatures[link.to_id]
+        old_map = memory.graph.component(link.to_id)
         agreeing, apart = [], 0.0
         for held in self._merge_candidates:
-            held_from, held_to = signatures[held.from_id], signatures[held.to_id]
-            if held_to.map_id != new_to.map_id:
+            if held.to_id not in old_map:
                 continue
-            # Pose of the old map's odometry frame in the current one, implied by each link.
-            implied = [s_from.T_odom_base @ l.T_from_to @ transforms.inverse(s_to.T_odom_base)
-                       for l, s_from, s_to in ((held, held_from, held_to), (link, new_from, new_to))]
+            old_poses = self._old_map_poses(held.to_id, link.to_id)
+            if old_poses is None:
+                continue
+            held_from = signatures[held.from_id]
+            # Pose of the old map's frame in the current session's odometry frame, per link.
+            implied = [T_from @ l.T_from_to @ transforms.inverse(T_to) for l, T_from, T_to in
+                       ((held, held_from.T_odom_base, old_poses[0]), (link, new_from.T_odom_base, old_poses[1]))]
             difference = transforms.inverse(implied[0]) @ implied[1]
             if (np.linalg.norm(difference[:3, 3]) < CONSENSUS_DISTANCE_M
                     and transforms.rotation_angle(difference) < CONSENSUS_ANGLE_RAD):
                 agreeing.append(held)
-                apart = max(apart, min(
-                    np.linalg.norm(held_from.T_odom_base[:3, 3] - new_from.T_odom_base[:3, 3]),
-                    np.linalg.norm(held_to.T_odom_base[:3, 3] - new_to.T_odom_base[:3, 3])))
+                apart = max(apart, min(np.linalg.norm(held_from.T_odom_base[:3, 3] - new_from.T_odom_base[:3, 3]),
+                                       np.linalg.norm(old_poses[0][:3, 3] - old_poses[1][:3, 3])))
         if apart >= separation:
             log.info("maps %d and %d merged: %d loop closures up to %.1f m apart agree on their alignment",
                      new_from.map_id, new_to.map_id, len(agreeing) + 1, apart)
@@ -440,6 +447,16 @@ class Rtabmap:
                  link.from_id, link.to_id, new_from.map_id, new_to.map_id)
         self._merge_candidates = (self._merge_candidates + [link])[-MAX_MERGE_CANDIDATES:]
         return []
+
+    def _old_map_poses(self, a: int, b: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """Poses of two nodes of one old map in a common frame: its last optimised local map, or
+        the odometry of their session (after reopening a database), or None."""
+        if a in self._map_poses and b in self._map_poses:
+            return self._map_poses[a], self._map_poses[b]
+        sa, sb = self.memory.signatures[a], self.memory.signatures[b]
+        if sa.map_id == sb.map_id:
+            return sa.T_odom_base, sb.T_odom_base
+        return None
 
     def _verify(self, current: Signature, old: Signature) -> Link:
         """Loop closure verification (2014 §II-A): a link, or RegistrationError to reject it."""
@@ -576,6 +593,7 @@ class Rtabmap:
         had_loops = bool(self._new_loops)
         poses, links = self._optimize_component(newest)
         self._optimized = poses
+        self._map_poses.update(poses)
         self._local_links = [link for link in links if link.key() not in self._inactive_links]
         self._T_map_odom = poses[newest] @ transforms.inverse(memory.signatures[newest].T_odom_base)
         return had_loops and not any(memory.graph.link(l.from_id, l.to_id) and l.key() not in self._inactive_links
