@@ -236,10 +236,13 @@ def test_frames_completed_together_are_all_processed(harness, frames):
     burst = frames[:FRAME_QUEUE_SIZE + 2]
     assert len(burst) == FRAME_QUEUE_SIZE + 2, "N_FRAMES too small for this test"
     release = _hold_worker(node)
-    for f in burst:
-        t.publish_frame(f)
-    assert wait_for(lambda: node._sync.emitted == len(burst))
-    release.set()
+    try:
+        for i, f in enumerate(burst, 1):
+            # One set at a time: the synchroniser's own queues (sync_queue_size) are not under test.
+            t.publish_frame(f)
+            assert wait_for(lambda: node._sync.emitted == i), node._sync.dropped
+    finally:
+        release.set()   # a held worker would block the harness's shutdown
     assert wait_for(lambda: t.count("info") == FRAME_QUEUE_SIZE)
     assert node.frames_processed == FRAME_QUEUE_SIZE and node.frames_dropped == 2
     # The newest frames are kept, in order.
