@@ -147,6 +147,9 @@ class Rtabmap:
         self._merge_candidates: list[Link] = []
         # Last optimised pose of every node that was in a local map (an old map's own frame).
         self._map_poses: dict[int, np.ndarray] = {}
+        # A map merged this frame: its last optimised poses, moved onto the current one by the
+        # confirming loop closure (the initial guess of the merged local map).
+        self._merged_map_guess: dict[int, np.ndarray] = {}
         self._inactive_links: set[tuple[int, int]] = set()
         self._grid: Optional[GridAccumulator] = None
         self._grid_poses: dict[int, np.ndarray] = {}
@@ -407,8 +410,10 @@ class Rtabmap:
         safety for multi-session): it happens when a second loop closure to the same old map, from
         places at least ``graph.merge_min_separation`` apart on both maps, agrees with a held one
         on the alignment of the two maps (current session: odometry; old map: its last optimised
-        poses, which stay consistent over the sessions it merged). It and every held one agreeing
-        with it are then added.
+        poses, which stay consistent over the sessions it merged). Only the confirming link is
+        added, so the merge itself bends nothing: adding the held ones with it strained links of
+        the old map by ~150 std devs and RGBD/OptimizeMaxError undid the merge; the loop closures
+        that follow are added one per frame and checked as usual.
         """
         memory = self.memory
         separation = self.params.graph.merge_min_separation
@@ -442,11 +447,29 @@ class Rtabmap:
             log.info("maps %d and %d merged: %d loop closures up to %.1f m apart agree on their alignment",
                      new_from.map_id, new_to.map_id, len(agreeing) + 1, apart)
             self._merge_candidates = []
-            return agreeing + [link]
+            self._merged_map_guess = self._aligned_old_map(link, old_map)
+            return [link]
         log.info("loop closure %d -> %d would merge maps %d and %d: held until another one agrees",
                  link.from_id, link.to_id, new_from.map_id, new_to.map_id)
         self._merge_candidates = (self._merge_candidates + [link])[-MAX_MERGE_CANDIDATES:]
         return []
+
+    def _aligned_old_map(self, link: Link, old_map: set[int]) -> dict[int, np.ndarray]:
+        """The old map's last optimised poses, moved so ``link`` holds exactly from the new node's
+        pose in the current local map (chained from the previous node by odometry)."""
+        old_poses = {n: self._map_poses[n] for n in old_map if n in self._map_poses}
+        if link.to_id not in old_poses:
+            return {}
+        T_from = self._optimized.get(link.from_id)
+        if T_from is None:
+            previous = max((n for n in self._optimized if self.memory.map_ids.get(n) == self.memory.map_id),
+                           default=None)
+            if previous is None:
+                return {}
+            T_from = (self._optimized[previous] @ transforms.inverse(self.memory.signatures[previous].T_odom_base)
+                      @ self.memory.signatures[link.from_id].T_odom_base)
+        align = T_from @ link.T_from_to @ transforms.inverse(old_poses[link.to_id])
+        return {n: align @ T for n, T in old_poses.items()}
 
     def _old_map_poses(self, a: int, b: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Poses of two nodes of one old map in a common frame: its last optimised local map, or
@@ -546,7 +569,8 @@ class Rtabmap:
             # poses here fed round-off back every frame: rotations lost orthonormality
             # exponentially, x2 per frame, and poses overflowed after ~1,000 frames.)
             return chain_poses(root, root_pose, links), links
-        guess = _warm_start(root, root_pose, links, self._optimized)
+        guess = _warm_start(root, root_pose, links, {**self._merged_map_guess, **self._optimized})
+        self._merged_map_guess = {}
         if guess is None or not self._fits_inter_session_majority(guess, links):
             guess = consensus_guess(root, root_pose, links)
         result = optimize(guess, links, root, self.params.graph, planar=bool(self._planar))
@@ -647,7 +671,9 @@ def _links_within(graph: Graph, nodes: set[int]) -> list[Link]:
 def _warm_start(root: int, root_pose: np.ndarray, links: list[Link],
                 previous: dict[int, np.ndarray]) -> Optional[dict[int, np.ndarray]]:
     """Initial guess from the previous optimised poses, new nodes chained from them by their
-    links, all moved rigidly so the root sits at ``root_pose``; None without a previous solution."""
+    links, all moved rigidly so the root sits at ``root_pose``; None without a previous solution
+    or when it does not reach every node (a map merged this frame: its nodes are reached only
+    against the links' direction, and a guess without them put the merged map 195 std devs off)."""
     nodes = {link.from_id for link in links} | {link.to_id for link in links} | {root}
     poses = {n: previous[n] for n in nodes if n in previous}
     if not poses:
@@ -662,6 +688,8 @@ def _warm_start(root: int, root_pose: np.ndarray, links: list[Link],
                     poses[link.to_id] = poses[node] @ link.T_from_to
                     reached.append(link.to_id)
         frontier = reached
+    if len(poses) < len(nodes):
+        return None
     align = root_pose @ transforms.inverse(poses[root])
     return {n: align @ p for n, p in poses.items()}
 
