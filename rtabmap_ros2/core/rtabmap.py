@@ -380,9 +380,8 @@ class Rtabmap:
                 stats.rejected_loop_closure_id = old.id
                 log.debug("loop closure %d -> %d rejected: %s", sig.id, old.id, exc)
             else:
-                for accepted in self._merge_evidence(link):
-                    self._new_loops.append((accepted, memory.add_loop_closure(accepted)))
-                if memory.graph.link(link.from_id, link.to_id) is not None:
+                if self._merge_allows(link):
+                    self._new_loops.append((link, memory.add_loop_closure(link)))
                     stats.loop_closure_id = old.id
                     stats.loop_closure_type = link.type.value
                 else:
@@ -398,8 +397,8 @@ class Rtabmap:
         self.bayes.update(candidates, likelihood(scores))
         return self.bayes.highest()
 
-    def _merge_evidence(self, link: Link) -> list[Link]:
-        """The loop closures to add for a verified ``link``: itself, or the merge it completes.
+    def _merge_allows(self, link: Link) -> bool:
+        """True when the verified ``link`` is to be added now, False when it is held.
 
         A link between nodes already connected (through WM or LTM) is added, the optimiser and
         RGBD/OptimizeMaxError judge it against the graph. A link joining two maps that are not
@@ -417,16 +416,17 @@ class Rtabmap:
         """
         memory = self.memory
         separation = self.params.graph.merge_min_separation
-        if (separation <= 0 or memory.signatures[link.from_id].T_odom_base is None
-                or link.to_id in memory.graph.component(link.from_id)):
-            return [link]
+        if separation <= 0 or memory.signatures[link.from_id].T_odom_base is None:
+            return True
+        old_map = memory.graph.component(link.to_id)
+        if link.from_id in old_map:
+            return True
         signatures = memory.signatures
         # Candidates whose nodes left WM cannot be compared (their odometry pose is in LTM).
         self._merge_candidates = [c for c in self._merge_candidates
                                   if c.from_id in signatures and c.to_id in signatures]
         new_from, new_to = signatures[link.from_id], signatures[link.to_id]
-        old_map = memory.graph.component(link.to_id)
-        agreeing, apart = [], 0.0
+        agreeing, apart = 0, 0.0
         for held in self._merge_candidates:
             if held.to_id not in old_map:
                 continue
@@ -440,34 +440,32 @@ class Rtabmap:
             difference = transforms.inverse(implied[0]) @ implied[1]
             if (np.linalg.norm(difference[:3, 3]) < CONSENSUS_DISTANCE_M
                     and transforms.rotation_angle(difference) < CONSENSUS_ANGLE_RAD):
-                agreeing.append(held)
+                agreeing += 1
                 apart = max(apart, min(np.linalg.norm(held_from.T_odom_base[:3, 3] - new_from.T_odom_base[:3, 3]),
                                        np.linalg.norm(old_poses[0][:3, 3] - old_poses[1][:3, 3])))
         if apart >= separation:
             log.info("maps %d and %d merged: %d loop closures up to %.1f m apart agree on their alignment",
-                     new_from.map_id, new_to.map_id, len(agreeing) + 1, apart)
+                     new_from.map_id, new_to.map_id, agreeing + 1, apart)
             self._merge_candidates = []
             self._merged_map_guess = self._aligned_old_map(link, old_map)
-            return [link]
+            return True
         log.info("loop closure %d -> %d would merge maps %d and %d: held until another one agrees",
                  link.from_id, link.to_id, new_from.map_id, new_to.map_id)
         self._merge_candidates = (self._merge_candidates + [link])[-MAX_MERGE_CANDIDATES:]
-        return []
+        return False
 
     def _aligned_old_map(self, link: Link, old_map: set[int]) -> dict[int, np.ndarray]:
         """The old map's last optimised poses, moved so ``link`` holds exactly from the new node's
-        pose in the current local map (chained from the previous node by odometry)."""
+        pose in the current local map. The new node is not optimised yet (verification comes
+        first): its pose is chained by odometry from the session's newest optimised node."""
         old_poses = {n: self._map_poses[n] for n in old_map if n in self._map_poses}
-        if link.to_id not in old_poses:
+        previous = max((n for n in self._optimized if self.memory.map_ids.get(n) == self.memory.map_id),
+                       default=None)
+        if link.to_id not in old_poses or previous is None:
             return {}
-        T_from = self._optimized.get(link.from_id)
-        if T_from is None:
-            previous = max((n for n in self._optimized if self.memory.map_ids.get(n) == self.memory.map_id),
-                           default=None)
-            if previous is None:
-                return {}
-            T_from = (self._optimized[previous] @ transforms.inverse(self.memory.signatures[previous].T_odom_base)
-                      @ self.memory.signatures[link.from_id].T_odom_base)
+        signatures = self.memory.signatures
+        T_from = (self._optimized[previous] @ transforms.inverse(signatures[previous].T_odom_base)
+                  @ signatures[link.from_id].T_odom_base)
         align = T_from @ link.T_from_to @ transforms.inverse(old_poses[link.to_id])
         return {n: align @ T for n, T in old_poses.items()}
 

@@ -143,19 +143,19 @@ def test_a_map_merge_waits_for_a_second_agreeing_loop_closure_far_enough_away(tm
     rtabmap = _two_corridor_sessions(tmp_path)
     try:
         # A look-alike place 15 m away: held, nothing to judge it against.
-        assert rtabmap._merge_evidence(_inter_link(35, 5, error_xy=(15.0, 0.0))) == []
+        assert rtabmap._merge_allows(_inter_link(35, 5, error_xy=(15.0, 0.0))) is False
         # A true one: held too (it disagrees with the false one).
         first_true = _inter_link(37, 7)
-        assert rtabmap._merge_evidence(first_true) == []
+        assert rtabmap._merge_allows(first_true) is False
         # A true one only 1.5 m further: not independent evidence yet.
         near_true = _inter_link(40, 10)
-        assert rtabmap._merge_evidence(near_true) == []
+        assert rtabmap._merge_allows(near_true) is False
         # A true one 6 m further on both maps agrees with the first true one: the merge happens.
         second_true = _inter_link(49, 19)
-        assert rtabmap._merge_evidence(second_true) == [second_true]
+        assert rtabmap._merge_allows(second_true) is True
         rtabmap.memory.add_loop_closure(second_true)
         # Once connected, a loop closure is added at once (the optimiser judges it).
         later = _inter_link(52, 22)
-        assert rtabmap._merge_evidence(later) == [later]
+        assert rtabmap._merge_allows(later) is True
     finally:
         rtabmap.close()
