@@ -30,6 +30,8 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+from rtabmap_ros2.core.params import flatten
+
 BENCH_DIR = Path(__file__).resolve().parent
 RESULTS_DIR = BENCH_DIR / "results"
 LOG_DIR = RESULTS_DIR / "logs"
@@ -103,18 +105,6 @@ def _fmt(value) -> str:
     return text if len(text) <= MAX_CELL_CHARS else text[:MAX_CELL_CHARS - 1] + "…"
 
 
-def _flatten(d: dict, prefix: str = "") -> dict:
-    """Nested dicts -> dotted keys (lists kept as values)."""
-    out = {}
-    for k, v in d.items():
-        name = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flatten(v, f"{name}."))
-        else:
-            out[name] = v
-    return out
-
-
 def _is_records(value) -> bool:
     return isinstance(value, list) and bool(value) and all(isinstance(v, dict) for v in value)
 
@@ -136,7 +126,7 @@ def _table(header: list[str], rows: list[list]) -> list[str]:
 
 
 def _records_table(records: list[dict]) -> list[str]:
-    flat = [_flatten(r) for r in records]
+    flat = [flatten(r) for r in records]
     columns: list[str] = []
     for r in flat:
         columns += [k for k in r if k not in columns and not _is_records(r[k])]
@@ -159,7 +149,7 @@ def topic_section(name: str, data) -> list[str]:
         if _is_records(value):
             tables.append((path, _records_table(value)))
         elif _is_keyed_records(value):
-            tables.append((path, _records_table([{"name": k, **_flatten(v)} for k, v in value.items()])))
+            tables.append((path, _records_table([{"name": k, **flatten(v)} for k, v in value.items()])))
         elif isinstance(value, dict):
             for k, v in value.items():
                 visit(v, f"{path}.{k}" if path else str(k))

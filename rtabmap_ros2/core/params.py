@@ -298,7 +298,7 @@ class Params:
     def from_mapping(cls, values: Mapping[str, Any], base: "Params | None" = None) -> "Params":
         """Parameters from a (possibly nested, possibly ROS ``ros__parameters``) mapping."""
         params = base if base is not None else cls()
-        for name, value in _flatten(_unwrap_ros(values)).items():
+        for name, value in flatten(_unwrap_ros(values)).items():
             params = params.with_value(name, value)
         return params
 
@@ -475,13 +475,17 @@ def _unwrap_ros(values: Mapping[str, Any]) -> Mapping[str, Any]:
     return values
 
 
-def _flatten(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Nested dicts to dotted names; RTAB-Map names (with '/') are kept whole."""
+def flatten(values: Mapping[str, Any], separator: str = ".", prefix: str = "") -> dict[str, Any]:
+    """Nested mappings to flat names joined by ``separator`` (lists kept as values).
+
+    With ".", RTAB-Map names (with '/') are kept whole: ``{"Mem": {"STMSize": 30}}`` gives
+    ``Mem.STMSize`` but ``{"Mem/STMSize": 30}`` stays ``Mem/STMSize``.
+    """
     out: dict[str, Any] = {}
     for key, value in values.items():
         name = f"{prefix}{key}"
         if isinstance(value, Mapping):
-            out.update(_flatten(value, f"{name}."))
+            out.update(flatten(value, separator, f"{name}{separator}"))
         else:
             out[name] = value
     return out
@@ -507,6 +511,6 @@ def default_config_path(name: str = "rtabmap.yaml") -> Path | None:
 
 __all__ = [
     "BayesParams", "FeatureParams", "GraphParams", "GridParams", "MemoryParams", "NodeParams", "Params",
-    "RTABMAP_ALIASES", "RegistrationParams", "SyncParams", "VocabularyParams", "default_config_path",
+    "RTABMAP_ALIASES", "RegistrationParams", "SyncParams", "VocabularyParams", "default_config_path", "flatten",
     "resolve_name",
 ]

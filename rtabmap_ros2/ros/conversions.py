@@ -32,6 +32,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Link, LinkType
+from rtabmap_ros2.core.params import flatten
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 from rtabmap_ros2.errors import SensorDataError
 from rtabmap_ros2.io.bag import DEFAULT_T_BASE_CAMERA as _BAG_DEFAULT_T_BASE_CAMERA
@@ -393,7 +394,7 @@ def statistics_to_msg(statistics: Any, stamp_ns: int, frame_id: str = "") -> Dia
     ``timings_ms/bayes``) and whose ``message`` summarises the location and loop closure ids.
     """
     values = statistics.to_dict() if hasattr(statistics, "to_dict") else dict(statistics)
-    flat = _flatten_stats(values)
+    flat = flatten(values, separator="/")
     summary = (f"location {flat.get('location_id', '?')}, map {flat.get('map_id', '?')}, "
                f"loop closure {flat.get('loop_closure_id', '?')}")
     status = DiagnosticStatus(level=DiagnosticStatus.OK, name=STATUS_NAME, hardware_id=HARDWARE_ID,
@@ -408,16 +409,6 @@ def statistics_from_msg(msg: DiagnosticArray) -> dict[str, str]:
         if status.name == STATUS_NAME:
             return {kv.key: kv.value for kv in status.values}
     raise SensorDataError(f"info message has no {STATUS_NAME!r} status")
-
-
-def _flatten_stats(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in values.items():
-        if isinstance(value, Mapping):
-            out.update(_flatten_stats(value, f"{prefix}{key}/"))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 def _text(value: Any) -> str:
