@@ -265,6 +265,20 @@ class WriteBatch:
     deleted_links: list[tuple[int, int]] = field(default_factory=list)
     statistics: list[dict] = field(default_factory=list)
 
+    def add_link(self, link: Link) -> None:
+        """Insert or replace ``link``; cancels a deletion of the same pair earlier in this batch."""
+        pair = {link.from_id, link.to_id}
+        self.deleted_links = [d for d in self.deleted_links if set(d) != pair]
+        self.links = [l for l in self.links if {l.from_id, l.to_id} != pair]
+        self.links.append(link)
+
+    def delete_link(self, a: int, b: int) -> None:
+        """Remove the link between ``a`` and ``b``: from the database, and from this batch if it
+        was added here (deletions are applied before insertions, so a link added and removed in
+        the same frame would otherwise be written)."""
+        self.links = [l for l in self.links if {l.from_id, l.to_id} != {a, b}]
+        self.deleted_links.append((a, b))
+
     def is_empty(self) -> bool:
         """True when the batch changes nothing."""
         return not (self.locations or self.deleted_locations or self.weights or self.in_wm or self.words

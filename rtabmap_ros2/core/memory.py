@@ -123,14 +123,14 @@ class Memory:
 
     def add_link(self, link: Link) -> None:
         self.graph.add_link(link)
-        self._batch.links.append(link)
+        self._batch.add_link(link)
         self.on_graph_change(link.from_id, link.to_id)
 
     def remove_link(self, a: int, b: int) -> None:
         """Drop a link (e.g. a loop closure the robust optimiser found inconsistent)."""
         self.on_graph_change(a, b)
         self.graph.remove_link(a, b)
-        self._batch.deleted_links.append((a, b))
+        self._batch.delete_link(a, b)
 
     # -- weight update / rehearsal (§III-B, Eq. 1) ------------------------------------------------
     def rehearse(self, sig: Signature, new_word_ids: Iterable[int]) -> int:
@@ -164,11 +164,8 @@ class Memory:
         # Weight of L_t increased by L_c's plus one; L_c's links redirected to L_t; L_c deleted.
         sig.weight += prev.weight + 1
         self.on_graph_change(prev.id)
-        # Links to L_c not yet written (L_c -> L_t of this frame) must not reach the database:
-        # it applies a batch's deletions before its insertions, so they would outlive L_c.
-        self._batch.links = [link for link in self._batch.links if prev.id not in (link.from_id, link.to_id)]
         for link in self.graph.remove_node(prev.id):
-            self._batch.deleted_links.append((link.from_id, link.to_id))
+            self._batch.delete_link(link.from_id, link.to_id)
             if link.to_id == sig.id:
                 continue
             kind = (LinkType.NEIGHBOR if link.type is LinkType.NEIGHBOR

@@ -161,3 +161,25 @@ def test_merged_location_leaves_no_link_in_the_database(tmp_path, descriptors):
     assert nodes == {1, 3}
     assert all(a in nodes and b in nodes for a, b in stored)
     assert stored in ({(1, 3)}, {(3, 1)})
+
+
+def test_loop_closure_undone_in_its_own_frame_is_not_written(tmp_path, descriptors):
+    """A loop closure rejected after optimisation (RGBD/OptimizeMaxError) in the frame that added it
+    must not reach the database: the export's global map would otherwise optimise with it."""
+    memory = make_memory(tmp_path)
+    for node in (1, 2, 3):
+        add(memory, node, descriptors())
+    kept = Link(3, 1, LinkType.LOOP_INTRA)
+    memory.add_loop_closure(kept)
+    memory.commit()
+    memory.join()
+    add(memory, 4, descriptors())
+    rejected = Link(4, 2, LinkType.LOOP_INTRA)
+    before = memory.add_loop_closure(rejected)
+    memory.undo_loop_closure(rejected, before)
+    memory.commit()
+    memory.join()
+    stored = {(link.from_id, link.to_id) for link in memory.db.load_links()}
+    assert (3, 1) in stored
+    assert (4, 2) not in stored and (2, 4) not in stored
+    assert memory.graph.link(4, 2) is None
