@@ -80,6 +80,11 @@ def to_xy_yaw(T: np.ndarray) -> tuple[float, float, float]:
     return float(T[0, 3]), float(T[1, 3]), float(np.arctan2(T[1, 0], T[0, 0]))
 
 
+def wrap_angle(angle: float) -> float:
+    """``angle`` (rad) wrapped to [-pi, pi)."""
+    return float((angle + np.pi) % (2 * np.pi) - np.pi)
+
+
 def yaw_of(T: np.ndarray) -> float:
     """Rotation about z (rad) of a 4x4 transform."""
     return float(np.arctan2(T[1, 0], T[0, 0]))

@@ -136,10 +136,6 @@ def _densify(polyline: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(pts), np.asarray(vertex_index)
 
 
-def _wrap(a: float) -> float:
-    return float((a + np.pi) % (2 * np.pi) - np.pi)
-
-
 def drive(route_xy: np.ndarray, stops: dict[int, float], rng: np.random.Generator,
           speed_mps: float | None = None) -> Trajectory:
     """Follow a route with pure pursuit; return the 1 Hz ground truth.
@@ -190,7 +186,7 @@ def drive(route_xy: np.ndarray, stops: dict[int, float], rng: np.random.Generato
             continue
         target = pts[min(progress + lookahead, len(pts) - 1)]
         dist_to_end = np.hypot(pts[-1, 0] - x, pts[-1, 1] - y) if progress + lookahead >= len(pts) - 1 else np.inf
-        err = _wrap(np.arctan2(target[1] - y, target[0] - x) - yaw)
+        err = transforms.wrap_angle(np.arctan2(target[1] - y, target[0] - x) - yaw)
         w = float(np.clip(HEADING_GAIN * err, -MAX_YAW_RATE, MAX_YAW_RATE))
         v_target = 0.0 if abs(err) > TURN_IN_PLACE_RAD else speed_mps * np.cos(err) ** 2
         v_target = min(v_target, np.sqrt(2 * MAX_ACCELERATION * dist_to_end) if np.isfinite(dist_to_end) else v_target)
@@ -201,7 +197,7 @@ def drive(route_xy: np.ndarray, stops: dict[int, float], rng: np.random.Generato
             progress = len(pts) - 1
         x += v * np.cos(yaw) * CONTROL_DT_S
         y += v * np.sin(yaw) * CONTROL_DT_S
-        yaw = _wrap(yaw + w * CONTROL_DT_S)
+        yaw = transforms.wrap_angle(yaw + w * CONTROL_DT_S)
         step += 1
     return Trajectory(times_s=np.asarray(times), xy_yaw=np.asarray(samples), route_xy=np.asarray(route_xy),
                       speed_mps=speed_mps)
@@ -235,7 +231,7 @@ def wheel_odometry(xy_yaw: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         c, s = np.cos(a0), np.sin(a0)
         dx = c * (x1 - x0) + s * (y1 - y0)      # motion in the previous base frame
         dy = -s * (x1 - x0) + c * (y1 - y0)
-        dyaw = _wrap(a1 - a0)
+        dyaw = transforms.wrap_angle(a1 - a0)
         d = float(np.hypot(dx, dy))
         scale = 1.0 + rng.normal(0.0, ODOM_TRANSLATION_SIGMA)
         odx = dx * scale
@@ -245,6 +241,6 @@ def wheel_odometry(xy_yaw: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         c, s = np.cos(yaw), np.sin(yaw)
         x += c * odx - s * ody
         y += s * odx + c * ody
-        yaw = _wrap(yaw + odyaw)
+        yaw = transforms.wrap_angle(yaw + odyaw)
         out[k] = transforms.from_xy_yaw(x, y, yaw)
     return out

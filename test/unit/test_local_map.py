@@ -68,6 +68,23 @@ def test_corridor_direction_the_scans_cannot_see_stays_on_odometry(rng):
     assert info[1, 1] > 10 * info[0, 0]  # the information says so too
 
 
+def test_turn_with_overconfident_odometry_follows_the_scans(rng):
+    """Wheel odometry stating 0.13 deg on a 34 deg turn it got 2 deg wrong (as the simulated
+    robot's, and any robot publishing a fixed covariance): the scans must win, and the link's
+    information must not claim the odometry's precision for a yaw it got wrong."""
+    truth = transforms.from_xy_yaw(0.33, 0.10, np.deg2rad(34.4))
+    previous = scan_of_walls(transforms.identity(), ROOM, rng)
+    new = scan_of_walls(truth, ROOM, rng)
+    odometry = truth @ transforms.from_xy_yaw(0.0, 0.0, np.deg2rad(-2.0))
+    overconfident = np.diag(1.0 / np.array([2e-5, 2e-5, 1e-6, 1e-6, 1e-6, np.deg2rad(0.13) ** 2]))
+    T, info = refine_neighbor_link(previous, new, odometry, overconfident, RegistrationParams())
+    err = transforms.relative(truth, T)
+    assert abs(transforms.yaw_of(err)) < np.deg2rad(0.2)
+    assert np.linalg.norm(err[:2, 3]) < 0.01
+    yaw_std = np.sqrt(np.linalg.inv(info[np.ix_([0, 1, 5], [0, 1, 5])])[2, 2])
+    assert abs(transforms.yaw_of(err)) < 4 * yaw_std  # the stated precision covers the error
+
+
 def test_refinement_refused_when_scans_do_not_overlap(rng):
     previous = scan_of_walls(transforms.identity(), ROOM, rng)
     elsewhere = scan_of_walls(transforms.identity(), [((10, 10), (11, 10))], rng)
@@ -159,3 +176,4 @@ def test_a_map_merge_waits_for_a_second_agreeing_loop_closure_far_enough_away(tm
         assert rtabmap._merge_allows(later) is True
     finally:
         rtabmap.close()
+
