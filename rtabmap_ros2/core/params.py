@@ -162,8 +162,8 @@ class RegistrationParams:
     planar: bool = _p(True, "Robot moves on a plane: keep x, y, yaw only (Reg/Force3DoF)")
     icp_refine: bool = _p(True, "Refine visual loop closures with 2D ICP on the laser scans")
     neighbor_link_refining: bool = _p(
-        False, "Refine each neighbour link with 2D ICP between consecutive scans, the odometry as "
-        "prior (RTAB-Map's RGBD/NeighborLinkRefining; planar mode with a laser)")
+        False, "Refine each neighbour link with 2D ICP between consecutive scans started from the "
+        "odometry, then fused with it (RTAB-Map's RGBD/NeighborLinkRefining; planar mode with a laser)")
     icp_max_correspondence_distance: float = _p(0.3, "ICP: maximum point-to-line correspondence distance", "m")
     icp_iterations: int = _p(30, "ICP: maximum iterations", "iterations")
     icp_min_overlap: float = _p(0.5, "ICP: minimum ratio of scan points with a correspondence", "ratio")
