@@ -35,6 +35,7 @@ from rtabmap_ros2.core.sensor import CameraModel
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.errors import RegistrationError
 from rtabmap_ros2.io.carmen import read_carmen_log
+from rtabmap_ros2.io.trajectory import Trajectory, ate
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -182,43 +183,58 @@ def inlier_counts() -> list[dict]:
     return rows
 
 
-def neighbor_link_refining(frames_used: int) -> dict:
-    """Per-link error against ground truth of wheel odometry vs RGBD/NeighborLinkRefining (ICP from
-    the odometry, fused with it) between consecutive frames of the simulated building's first
-    session: medians, and the largest yaw errors (turns, where the odometry is worst)."""
+def neighbor_link_refining(sessions: int, frames_used: int | None) -> dict:
+    """Per-link error against ground truth between consecutive frames of the simulated building's
+    sessions, of wheel odometry and of RGBD/NeighborLinkRefining (ICP from the odometry, which fills
+    in only what the scans leave free) against the previous scan alone (``scan_to_scan``) and against
+    the last ``neighbor_scan_map_nodes`` scans assembled (``scan_map``, the default): medians, the
+    largest yaw errors (turns, where the odometry is worst), the mean signed yaw error (what a
+    systematic odometry error leaves in every link) and, per session, the drift of the links chained
+    from its first frame (ATE after one rigid alignment)."""
     from rtabmap_ros2.sim import build_world, make_sessions, session_frames
 
     world = build_world(0)
-    session = make_sessions(world)[0]
-    frames = []
-    for frame in session_frames(world, session):
-        frames.append(frame)
-        if len(frames) >= frames_used:
-            break
     params = RegistrationParams()
-    odo_t, odo_r, ref_t, ref_r, times, refused = [], [], [], [], [], 0
-    for k in range(1, len(frames)):
-        a, b = frames[k - 1], frames[k]
-        T_odom = transforms.relative(a.T_odom_base, b.T_odom_base)
-        truth = transforms.relative(session.T_world_base[k - 1], session.T_world_base[k])
-        info = np.linalg.inv(b.odom_covariance)
-        start = time.perf_counter()
-        try:
-            T_ref, _ = registration.refine_neighbor_link(a.scan, b.scan, T_odom, info, params)
-        except RegistrationError:
-            refused += 1
-            T_ref = T_odom
-        times.append((time.perf_counter() - start) * 1000.0)
-        for T, t_errs, r_errs in ((T_odom, odo_t, odo_r), (T_ref, ref_t, ref_r)):
-            err = transforms.relative(truth, T)
-            t_errs.append(float(np.linalg.norm(err[:2, 3])) * 1000.0)
-            r_errs.append(float(np.degrees(abs(transforms.yaw_of(err)))))
-    return {"links": len(times), "refused": refused,
-            "odometry_median_mm": statistics.median(odo_t), "odometry_median_deg": statistics.median(odo_r),
-            "refined_median_mm": statistics.median(ref_t), "refined_median_deg": statistics.median(ref_r),
-            "odometry_max_deg": max(odo_r), "refined_max_deg": max(ref_r),
-            "odometry_p99_deg": float(np.percentile(odo_r, 99)), "refined_p99_deg": float(np.percentile(ref_r, 99)),
-            "median_ms": statistics.median(times)}
+    map_nodes = {"odometry": 0, "scan_to_scan": 1, "scan_map": params.neighbor_scan_map_nodes}
+    t_err, r_err, signed, chain_ate, times = ({name: [] for name in map_nodes} for _ in range(5))
+    refused = dict.fromkeys(map_nodes, 0)
+    for session in make_sessions(world)[:sessions]:
+        # Scans and odometry only (the images of a whole session would take gigabytes).
+        frames = [(f.stamp_ns, f.T_odom_base, f.odom_covariance, f.scan)
+                  for f in itertools.islice(session_frames(world, session), frames_used)]
+        stamps = np.array([f[0] for f in frames], dtype=np.int64)
+        truth_trajectory = Trajectory(stamps, session.T_world_base[:len(frames)])
+        for name, nodes in map_nodes.items():
+            chained = [transforms.identity()]
+            for k in range(1, len(frames)):
+                (_, T_a, _, _), (_, T_b, cov_b, scan_b) = frames[k - 1], frames[k]
+                T_link = transforms.relative(T_a, T_b)
+                if nodes:
+                    start = time.perf_counter()
+                    # As the product does: the last `nodes` scans at the poses of the links so far.
+                    T_previous_world = transforms.inverse(chained[k - 1])
+                    scan_map = registration.assemble_scan_map(
+                        [(T_previous_world @ chained[j], frames[j][3]) for j in range(max(0, k - nodes), k)],
+                        params.scan_map_voxel_size)
+                    try:
+                        T_link, _ = registration.refine_neighbor_link(scan_map, scan_b, T_link, np.linalg.inv(cov_b),
+                                                                      params)
+                    except RegistrationError:
+                        refused[name] += 1
+                    times[name].append((time.perf_counter() - start) * 1000.0)
+                err = transforms.relative(transforms.relative(session.T_world_base[k - 1], session.T_world_base[k]),
+                                          T_link)
+                t_err[name].append(float(np.linalg.norm(err[:2, 3])) * 1000.0)
+                r_err[name].append(float(np.degrees(abs(transforms.yaw_of(err)))))
+                signed[name].append(float(np.degrees(transforms.yaw_of(err))))
+                chained.append(chained[-1] @ T_link)
+            chain_ate[name].append(ate(Trajectory(stamps, np.array(chained)), truth_trajectory).rmse_m)
+    return {name: {"links": len(t_err[name]), "refused": refused[name], "scan_map_nodes": nodes,
+                   "median_mm": statistics.median(t_err[name]), "median_deg": statistics.median(r_err[name]),
+                   "p99_deg": float(np.percentile(r_err[name], 99)), "max_deg": max(r_err[name]),
+                   "mean_deg": float(np.mean(signed[name])), "chain_ate_m": chain_ate[name],
+                   "median_ms": statistics.median(times[name]) if times[name] else 0.0}
+            for name, nodes in map_nodes.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -242,12 +258,16 @@ def main(argv: list[str] | None = None) -> int:
           f"{icp['median_translation_error_cm']:.2f} cm / {icp['median_rotation_error_deg']:.3f} deg, p90 "
           f"{icp['p90_translation_error_cm']:.2f} cm / {icp['p90_rotation_error_deg']:.3f} deg, "
           f"overlap {icp['median_overlap']:.2f}, {icp['median_ms']:.2f} ms")
-    nlr = neighbor_link_refining(60 if args.quick else 150)
-    print(f"\nNeighbour link refining, simulated session 1 ({nlr['links']} links, {nlr['refused']} refused): "
-          f"odometry {nlr['odometry_median_mm']:.1f} mm / {nlr['odometry_median_deg']:.3f} deg -> refined "
-          f"{nlr['refined_median_mm']:.1f} mm / {nlr['refined_median_deg']:.3f} deg (median error vs ground truth); "
-          f"yaw error p99 / max {nlr['odometry_p99_deg']:.2f} / {nlr['odometry_max_deg']:.2f} -> "
-          f"{nlr['refined_p99_deg']:.2f} / {nlr['refined_max_deg']:.2f} deg; {nlr['median_ms']:.1f} ms")
+    nlr = neighbor_link_refining(1, 60) if args.quick else neighbor_link_refining(5, None)
+    print(f"\nNeighbour links, {1 if args.quick else 5} simulated session(s), error vs ground truth "
+          f"({nlr['odometry']['links']} links):")
+    print(f"  {'':<22} {'median mm':>9} {'deg':>6} {'yaw p99':>8} {'max':>6} {'mean signed':>11} {'ms':>5}  "
+          "links chained per session: ATE m")
+    for name, r in nlr.items():
+        label = f"{name} ({r['scan_map_nodes']})" if r["scan_map_nodes"] else name
+        print(f"  {label:<22} {r['median_mm']:>9.1f} {r['median_deg']:>6.3f} {r['p99_deg']:>8.2f} {r['max_deg']:>6.2f} "
+              f"{r['mean_deg']:>11.4f} {r['median_ms']:>5.1f}  {' / '.join(f'{v:.3f}' for v in r['chain_ate_m'])}"
+              f"{'  (' + str(r['refused']) + ' refused)' if r['refused'] else ''}")
     counts = inlier_counts()
     print("\nInliers (inlier_distance 0.1 m): mutual matches | mutual + NNDR 0.8")
     for r in counts:

@@ -233,24 +233,25 @@ def voxel_filter(points: np.ndarray, colors: np.ndarray | None, voxel: float):
     """One point per occupied voxel (the centroid, mean colour).
 
     Args:
-        points: (N,3) float points (m).
+        points: (N,3) float points (m), or (N,2) for planar points (laser scans).
         colors: (N,3) uint8 RGB, or None.
         voxel: voxel edge (m), > 0.
 
     Returns:
-        ``(points (M,3) float32, colors (M,3) uint8 or None)``.
+        ``(points (M,D) float32, colors (M,3) uint8 or None)``, D the points' dimension.
     """
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    points = np.asarray(points, dtype=np.float64)
+    dim = 2 if points.ndim == 2 and points.shape[1] == 2 else 3
+    pts = points.reshape(-1, dim)
     if len(pts) == 0:
         return pts.astype(np.float32), None if colors is None else np.zeros((0, 3), np.uint8)
     keys = np.floor(pts / voxel).astype(np.int64)
     # One int64 key per voxel (1D np.unique is ~10x faster than over rows).
     keys -= keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    flat_keys = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    flat_keys = np.ravel_multi_index(keys.T, tuple(keys.max(axis=0) + 1))
     _, inverse, counts = np.unique(flat_keys, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
-    sums = np.zeros((len(counts), 3))
+    sums = np.zeros((len(counts), dim))
     np.add.at(sums, inverse, pts)
     out_pts = (sums / counts[:, None]).astype(np.float32)
     if colors is None:

@@ -162,8 +162,15 @@ class RegistrationParams:
     planar: bool = _p(True, "Robot moves on a plane: keep x, y, yaw only (Reg/Force3DoF)")
     icp_refine: bool = _p(True, "Refine visual loop closures with 2D ICP on the laser scans")
     neighbor_link_refining: bool = _p(
-        False, "Refine each neighbour link with 2D ICP between consecutive scans started from the "
-        "odometry, then fused with it (RTAB-Map's RGBD/NeighborLinkRefining; planar mode with a laser)")
+        False, "Refine each neighbour link with 2D ICP of the new scan against the previous nodes' "
+        "scans, started from the odometry, which fills in only what the scans leave free (RTAB-Map's "
+        "RGBD/NeighborLinkRefining; planar mode with a laser)")
+    neighbor_scan_map_nodes: int = _p(
+        10, "Neighbour link refining matches the new scan against the scans of this many previous "
+        "nodes of the session, assembled at their linked poses (1 = the previous scan only)", "nodes")
+    scan_map_voxel_size: float = _p(
+        0.05, "Voxel edge of the assembled scans of neighbour link refining (one centroid per voxel: "
+        "denoised, even density; RTAB-Map's Icp/VoxelSize)", "m")
     icp_max_correspondence_distance: float = _p(0.3, "ICP: maximum point-to-line correspondence distance", "m")
     icp_iterations: int = _p(30, "ICP: maximum iterations", "iterations")
     icp_min_overlap: float = _p(0.5, "ICP: minimum ratio of scan points with a correspondence", "ratio")
@@ -177,6 +184,9 @@ class RegistrationParams:
         _check(self.icp_max_correspondence_distance > 0, "registration.icp_max_correspondence_distance",
                self.icp_max_correspondence_distance, "> 0")
         _check(self.icp_iterations >= 1, "registration.icp_iterations", self.icp_iterations, ">= 1")
+        _check(self.neighbor_scan_map_nodes >= 1, "registration.neighbor_scan_map_nodes",
+               self.neighbor_scan_map_nodes, ">= 1")
+        _check(self.scan_map_voxel_size > 0, "registration.scan_map_voxel_size", self.scan_map_voxel_size, "> 0")
         _check(0.0 <= self.icp_min_overlap <= 1.0, "registration.icp_min_overlap", self.icp_min_overlap,
                "in [0, 1]")
         _check(self.icp_max_translation > 0, "registration.icp_max_translation", self.icp_max_translation,

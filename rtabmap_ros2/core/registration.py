@@ -19,9 +19,11 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 from scipy.spatial import cKDTree
 
 from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.grid import voxel_filter
 from rtabmap_ros2.core.params import RegistrationParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 from rtabmap_ros2.core.signature import Signature
@@ -65,10 +67,12 @@ ICP_DEPENDENCE = 10.0
 # was 2 deg off while stating 0.13 deg -- the simulated robot's wheels on 34 deg turns -- kept the
 # odometry: 2 deg off, the scans' residuals were down-weighted as outliers and the prior won.)
 NEIGHBOR_ICP_PRIOR_SCALE = 1e-3
-# Neighbour link refinement: odometry and scan match are fused when their difference is below this
-# chi-square (3 DoF, 99.9 %) under the sum of their covariances. Above it, the odometry's stated
-# covariance is wrong for this step (slip, a turn) and it is inflated until it passes.
-NEIGHBOR_FUSION_GATE_CHI2 = 16.27
+# Neighbour link refinement: the odometry is used only along directions where the scans' information
+# is below this ratio of the odometry's (generalised eigenvalues): where the scans constrain the
+# motion at least as well as the wheels, the scan match decides alone. Wheel odometry errors are
+# systematic (a wheel base slightly off, slip on turns): averaged into every well-constrained scan
+# match, a fraction of them stays in every link and adds up along a session.
+NEIGHBOR_SCAN_DOMINANCE = 1.0
 
 
 @dataclass
@@ -447,19 +451,43 @@ def _icp(source_xy: np.ndarray, target_xy: np.ndarray, T_init: np.ndarray, prior
     return _IcpFit(transforms.from_xy_yaw(*state), overlap, rmse, information)
 
 
-def refine_neighbor_link(previous_scan: LaserScan, new_scan: LaserScan, T_odom: np.ndarray,
-                         odom_information: np.ndarray, params: RegistrationParams) -> tuple[np.ndarray, np.ndarray]:
-    """Refine the odometry between two consecutive nodes with their scans (RGBD/NeighborLinkRefining).
+def assemble_scan_map(scans: list[tuple[np.ndarray, LaserScan]], voxel_size: float) -> np.ndarray:
+    """(M,2) points (m) of several scans in one frame, one centroid per voxel of ``voxel_size``.
+
+    Overlapping scans are merged by the voxel filter (one denoised point per cell, an even density
+    for the point-to-line normals); a single scan is returned as it is.
 
     Args:
-        previous_scan, new_scan: the scans of the previous and the new node.
+        scans: ``(T_frame_base, scan)`` pairs: each scan and the pose of its node in the frame.
+        voxel_size: voxel edge (m).
+    """
+    parts = [scan.points_base() @ T[:2, :2].T + T[:2, 3] for T, scan in scans]
+    if len(parts) == 1:
+        return parts[0]
+    points = np.concatenate(parts) if parts else np.zeros((0, 2))
+    return voxel_filter(points, None, voxel_size)[0].astype(np.float64)
+
+
+def refine_neighbor_link(scan_map: np.ndarray, new_scan: LaserScan, T_odom: np.ndarray,
+                         odom_information: np.ndarray, params: RegistrationParams) -> tuple[np.ndarray, np.ndarray]:
+    """Refine the odometry between two consecutive nodes by scan matching (RGBD/NeighborLinkRefining).
+
+    Matching against the scans of several previous nodes (:func:`assemble_scan_map`) rather than
+    the previous one alone ties each link to what the robot saw over the last metres, so the
+    scan-matching noise of consecutive links does not add up as a random walk.
+
+    Args:
+        scan_map: (M,2) points (m) in the previous node's base frame: its scan's, or the previous
+            nodes' scans assembled there.
+        new_scan: the new node's scan.
         T_odom: 4x4 odometry motion ``T_previous_new``.
         odom_information: 6x6 information of the odometry motion (x y z roll pitch yaw).
         params: ICP gate, iterations, overlap and largest correction.
 
     Returns:
-        ``(T_previous_new, information)``: the planar fusion of scan matching and odometry and its
-        6x6 information (z, roll, pitch kept from odometry).
+        ``(T_previous_new, information)``: the scan match, with the odometry fused in only along
+        the directions the scans leave nearly free (:data:`NEIGHBOR_SCAN_DOMINANCE`), and its 6x6
+        information (z, roll, pitch kept from odometry).
 
     Raises:
         RegistrationError: the scans overlap too little or ICP moved the odometry by more than
@@ -468,7 +496,7 @@ def refine_neighbor_link(previous_scan: LaserScan, new_scan: LaserScan, T_odom: 
     planar = [0, 1, 5]
     odom_planar = odom_information[np.ix_(planar, planar)]
     # 1. Scan match from the odometry, held only weakly by it (NEIGHBOR_ICP_PRIOR_SCALE).
-    fit = _icp(new_scan.points_base(), previous_scan.points_base(), T_odom,
+    fit = _icp(new_scan.points_base(), scan_map, T_odom,
                NEIGHBOR_ICP_PRIOR_SCALE * odom_planar, params.icp_max_correspondence_distance,
                params.icp_iterations)
     correction = float(np.linalg.norm(fit.T[:2, 3] - T_odom[:2, 3]))
@@ -476,19 +504,19 @@ def refine_neighbor_link(previous_scan: LaserScan, new_scan: LaserScan, T_odom: 
         raise RegistrationError(
             f"neighbour link refinement rejected: overlap {fit.overlap:.2f} (min {params.icp_min_overlap}), "
             f"correction {correction:.3f} m (max {params.icp_max_translation} m)")
-    # 2. Fuse the two estimates of (x, y, yaw) (information-weighted mean). In a direction the
-    # scans do not constrain (a featureless corridor) the odometry decides.
+    # 2. Combine per direction: in the generalised eigenvectors of (scan, odometry) information the
+    # two are diagonal; along those the scans constrain at least NEIGHBOR_SCAN_DOMINANCE times as
+    # well as the odometry, the scan match is kept as is; along the others (a featureless
+    # corridor's axis) the odometry is fused in (information-weighted mean).
     x_odom = np.array(transforms.to_xy_yaw(T_odom))
     x_scan = np.array(transforms.to_xy_yaw(fit.T))
     d = x_scan - x_odom
     d[2] = transforms.wrap_angle(d[2])
     I_scan = fit.information
-    # chi2 of the difference under C_scan + C_odom, i.e. d' I_odom (I_odom + I_scan)^-1 I_scan d
-    # (no inverse of the scans' information, singular in a corridor).
-    chi2 = float(d @ odom_planar @ np.linalg.solve(odom_planar + I_scan, I_scan @ d))
-    if chi2 > NEIGHBOR_FUSION_GATE_CHI2:
-        odom_planar = odom_planar * (NEIGHBOR_FUSION_GATE_CHI2 / chi2)
-    fused_info = odom_planar + I_scan
+    ratios, V = scipy.linalg.eigh(I_scan, odom_planar)  # V' I_odom V = 1, V' I_scan V = diag(ratios)
+    V_inv = np.linalg.inv(V)
+    odom_kept = V_inv.T @ np.diag((ratios < NEIGHBOR_SCAN_DOMINANCE).astype(float)) @ V_inv
+    fused_info = odom_kept + I_scan
     x = x_odom + np.linalg.solve(fused_info, I_scan @ d)
     info = np.array(odom_information, dtype=np.float64, copy=True)
     info[np.ix_(planar, planar)] = fused_info
@@ -497,5 +525,5 @@ def refine_neighbor_link(previous_scan: LaserScan, new_scan: LaserScan, T_odom: 
     return T, info
 
 
-__all__ = ["Registration", "correspondences", "icp_2d", "kabsch", "ransac_rigid", "refine_neighbor_link", "register",
+__all__ = ["Registration", "assemble_scan_map", "correspondences", "icp_2d", "kabsch", "ransac_rigid", "refine_neighbor_link", "register",
            "words_3d"]

@@ -35,7 +35,7 @@ from rtabmap_ros2.core.graph import (CONSENSUS_ANGLE_RAD, CONSENSUS_DISTANCE_M, 
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import optimize
 from rtabmap_ros2.core.params import Params
-from rtabmap_ros2.core.registration import refine_neighbor_link, register, words_3d
+from rtabmap_ros2.core.registration import assemble_scan_map, refine_neighbor_link, register, words_3d
 from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.errors import OptimizationError, RegistrationError, SensorDataError
@@ -495,10 +495,28 @@ class Rtabmap:
         params = self.params.registration
         if params.neighbor_link_refining and self._planar and previous.scan is not None and new.scan is not None:
             try:
-                T_odom, info = refine_neighbor_link(previous.scan, new.scan, T_odom, info, params)
+                T_odom, info = refine_neighbor_link(self._scan_map(previous), new.scan, T_odom, info, params)
             except RegistrationError as exc:
                 log.debug("neighbour link %d -> %d kept from odometry: %s", previous.id, new.id, exc)
         return Link(previous.id, new.id, LinkType.NEIGHBOR, T_odom, info)
+
+    def _scan_map(self, previous: Signature) -> np.ndarray:
+        """The scans of ``previous`` and the nodes before it in its session (up to
+        ``registration.neighbor_scan_map_nodes``, following neighbour links while they are in
+        memory with a scan), assembled in ``previous``'s base frame."""
+        memory = self.memory
+        params = self.params.registration
+        scans = [(transforms.identity(), previous.scan)]
+        node, T_previous_node = previous.id, transforms.identity()
+        while len(scans) < params.neighbor_scan_map_nodes:
+            older = [n for n in memory.graph.neighbors(node, (LinkType.NEIGHBOR,)) if n < node]
+            sig = memory.signatures.get(older[0]) if older else None
+            if sig is None or sig.scan is None:
+                break
+            T_previous_node = T_previous_node @ memory.graph.link(node, sig.id).T_from_to
+            scans.append((T_previous_node, sig.scan))
+            node = sig.id
+        return assemble_scan_map(scans, params.scan_map_voxel_size)
 
     def _odometry_information(self, frame: SensorFrame) -> np.ndarray:
         """Information of a neighbour link: the odometry covariance when it is usable."""
