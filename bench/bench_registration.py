@@ -183,6 +183,49 @@ def inlier_counts() -> list[dict]:
     return rows
 
 
+NEIGHBOR_LINK_KINDS = ("odometry", "scan_to_scan", "scan_map")
+
+
+def _chain_neighbor_links(scans: list, odometry: list[np.ndarray], covariances: list[np.ndarray],
+                          truth: list[np.ndarray], stamps: np.ndarray, kind: str, params: RegistrationParams) -> dict:
+    """Neighbour links of one sequence of nodes (wheel odometry, or refined as the product does,
+    against the previous scan or the last ``neighbor_scan_map_nodes`` scans at the poses of the
+    links so far); their errors against ``truth`` and the ATE of the links chained from the first node."""
+    nodes = {"odometry": 0, "scan_to_scan": 1, "scan_map": params.neighbor_scan_map_nodes}[kind]
+    chained, errors, times, refused = [transforms.identity()], [], [], 0
+    for k in range(1, len(scans)):
+        T_link = transforms.relative(odometry[k - 1], odometry[k])
+        if nodes:
+            start = time.perf_counter()
+            T_previous_first = transforms.inverse(chained[k - 1])
+            scan_map = registration.assemble_scan_map(
+                [(T_previous_first @ chained[j], scans[j]) for j in range(max(0, k - nodes), k)],
+                params.scan_map_voxel_size)
+            try:
+                T_link, _ = registration.refine_neighbor_link(scan_map, scans[k], T_link,
+                                                              np.linalg.inv(covariances[k]), params)
+            except RegistrationError:
+                refused += 1
+            times.append((time.perf_counter() - start) * 1000.0)
+        err = transforms.relative(transforms.relative(truth[k - 1], truth[k]), T_link)
+        errors.append((float(np.linalg.norm(err[:2, 3])) * 1000.0, float(np.degrees(transforms.yaw_of(err)))))
+        chained.append(chained[-1] @ T_link)
+    chain_ate = ate(Trajectory(stamps, np.array(chained)), Trajectory(stamps, np.array(truth))).rmse_m
+    return {"errors": errors, "times": times, "refused": refused, "chain_ate_m": chain_ate, "nodes": nodes}
+
+
+def _summarise_links(runs: list[dict]) -> dict:
+    """Medians and extremes over the links of several sequences; the chained ATE of each."""
+    errors = np.array([e for r in runs for e in r["errors"]])
+    times = [t for r in runs for t in r["times"]]
+    yaw = np.abs(errors[:, 1])
+    return {"links": len(errors), "refused": sum(r["refused"] for r in runs), "scan_map_nodes": runs[0]["nodes"],
+            "median_mm": float(np.median(errors[:, 0])), "median_deg": float(np.median(yaw)),
+            "p99_deg": float(np.percentile(yaw, 99)), "max_deg": float(yaw.max()),
+            "mean_deg": float(np.mean(errors[:, 1])), "chain_ate_m": [r["chain_ate_m"] for r in runs],
+            "median_ms": statistics.median(times) if times else 0.0}
+
+
 def neighbor_link_refining(sessions: int, frames_used: int | None) -> dict:
     """Per-link error against ground truth between consecutive frames of the simulated building's
     sessions, of wheel odometry and of RGBD/NeighborLinkRefining (ICP from the odometry, which fills
@@ -195,46 +238,59 @@ def neighbor_link_refining(sessions: int, frames_used: int | None) -> dict:
 
     world = build_world(0)
     params = RegistrationParams()
-    map_nodes = {"odometry": 0, "scan_to_scan": 1, "scan_map": params.neighbor_scan_map_nodes}
-    t_err, r_err, signed, chain_ate, times = ({name: [] for name in map_nodes} for _ in range(5))
-    refused = dict.fromkeys(map_nodes, 0)
+    runs = {kind: [] for kind in NEIGHBOR_LINK_KINDS}
     for session in make_sessions(world)[:sessions]:
         # Scans and odometry only (the images of a whole session would take gigabytes).
-        frames = [(f.stamp_ns, f.T_odom_base, f.odom_covariance, f.scan)
-                  for f in itertools.islice(session_frames(world, session), frames_used)]
-        stamps = np.array([f[0] for f in frames], dtype=np.int64)
-        truth_trajectory = Trajectory(stamps, session.T_world_base[:len(frames)])
-        for name, nodes in map_nodes.items():
-            chained = [transforms.identity()]
-            for k in range(1, len(frames)):
-                (_, T_a, _, _), (_, T_b, cov_b, scan_b) = frames[k - 1], frames[k]
-                T_link = transforms.relative(T_a, T_b)
-                if nodes:
-                    start = time.perf_counter()
-                    # As the product does: the last `nodes` scans at the poses of the links so far.
-                    T_previous_world = transforms.inverse(chained[k - 1])
-                    scan_map = registration.assemble_scan_map(
-                        [(T_previous_world @ chained[j], frames[j][3]) for j in range(max(0, k - nodes), k)],
-                        params.scan_map_voxel_size)
-                    try:
-                        T_link, _ = registration.refine_neighbor_link(scan_map, scan_b, T_link, np.linalg.inv(cov_b),
-                                                                      params)
-                    except RegistrationError:
-                        refused[name] += 1
-                    times[name].append((time.perf_counter() - start) * 1000.0)
-                err = transforms.relative(transforms.relative(session.T_world_base[k - 1], session.T_world_base[k]),
-                                          T_link)
-                t_err[name].append(float(np.linalg.norm(err[:2, 3])) * 1000.0)
-                r_err[name].append(float(np.degrees(abs(transforms.yaw_of(err)))))
-                signed[name].append(float(np.degrees(transforms.yaw_of(err))))
-                chained.append(chained[-1] @ T_link)
-            chain_ate[name].append(ate(Trajectory(stamps, np.array(chained)), truth_trajectory).rmse_m)
-    return {name: {"links": len(t_err[name]), "refused": refused[name], "scan_map_nodes": nodes,
-                   "median_mm": statistics.median(t_err[name]), "median_deg": statistics.median(r_err[name]),
-                   "p99_deg": float(np.percentile(r_err[name], 99)), "max_deg": max(r_err[name]),
-                   "mean_deg": float(np.mean(signed[name])), "chain_ate_m": chain_ate[name],
-                   "median_ms": statistics.median(times[name]) if times[name] else 0.0}
-            for name, nodes in map_nodes.items()}
+        frames = list(itertools.islice(session_frames(world, session), frames_used))
+        scans = [f.scan for f in frames]
+        odometry = [f.T_odom_base for f in frames]
+        covariances = [f.odom_covariance for f in frames]
+        del frames
+        stamps = np.array(session.stamps_ns[:len(scans)], dtype=np.int64)
+        for kind in NEIGHBOR_LINK_KINDS:
+            runs[kind].append(_chain_neighbor_links(scans, odometry, covariances, list(session.T_world_base[:len(scans)]),
+                                                    stamps, kind, params))
+    return {kind: _summarise_links(r) for kind, r in runs.items()}
+
+
+def neighbor_links_real(logs: tuple[str, ...], seed: int = 0) -> dict:
+    """The same on the real CARMEN logs: nodes where the corrected pose moved 0.5 m or 15 deg
+    (about the simulated robot's 1 Hz at 0.5 m/s), wheel odometry = the corrected motion with the
+    simulated robot's wheel errors (robot.wheel_odometry, its covariance per step), truth = the
+    corrected poses (themselves a SLAM estimate, good to a few cm)."""
+    from rtabmap_ros2.sim.robot import step_covariance, wheel_odometry
+
+    rng = np.random.default_rng(seed)
+    params = RegistrationParams()
+    runs = {kind: [] for kind in NEIGHBOR_LINK_KINDS}
+    for name in logs:
+        log = read_carmen_log(DATA / "carmen" / f"{name}-corrected.log.gz")
+        all_scans, all_poses = log.laser_scans(), log.poses()
+        keep = [0]
+        for k in range(1, len(all_poses)):
+            step = transforms.relative(all_poses[keep[-1]], all_poses[k])
+            if np.hypot(*step[:2, 3]) >= 0.5 or abs(transforms.yaw_of(step)) >= np.radians(15.0):
+                keep.append(k)
+        truth = [all_poses[k] for k in keep]
+        scans = [all_scans[k] for k in keep]
+        odometry = list(wheel_odometry(np.array([transforms.to_xy_yaw(T) for T in truth]), rng))
+        covariance = step_covariance(0.5)
+        stamps = np.array([log.scans[k].stamp_ns for k in keep], dtype=np.int64)
+        for kind in NEIGHBOR_LINK_KINDS:
+            runs[kind].append(_chain_neighbor_links(scans, odometry, [covariance] * len(scans), truth, stamps, kind,
+                                                    params))
+    return {kind: _summarise_links(r) for kind, r in runs.items()}
+
+
+def print_neighbor_links(title: str, table: dict) -> None:
+    print(f"\nNeighbour links, {title}, error vs ground truth ({table['odometry']['links']} links):")
+    print(f"  {'':<22} {'median mm':>9} {'deg':>6} {'yaw p99':>8} {'max':>6} {'mean signed':>11} {'ms':>5}  "
+          "links chained per sequence: ATE m")
+    for name, r in table.items():
+        label = f"{name} ({r['scan_map_nodes']})" if r["scan_map_nodes"] else name
+        print(f"  {label:<22} {r['median_mm']:>9.1f} {r['median_deg']:>6.3f} {r['p99_deg']:>8.2f} {r['max_deg']:>6.2f} "
+              f"{r['mean_deg']:>11.4f} {r['median_ms']:>5.1f}  {' / '.join(f'{v:.3f}' for v in r['chain_ate_m'])}"
+              f"{'  (' + str(r['refused']) + ' refused)' if r['refused'] else ''}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -259,15 +315,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{icp['p90_translation_error_cm']:.2f} cm / {icp['p90_rotation_error_deg']:.3f} deg, "
           f"overlap {icp['median_overlap']:.2f}, {icp['median_ms']:.2f} ms")
     nlr = neighbor_link_refining(1, 60) if args.quick else neighbor_link_refining(5, None)
-    print(f"\nNeighbour links, {1 if args.quick else 5} simulated session(s), error vs ground truth "
-          f"({nlr['odometry']['links']} links):")
-    print(f"  {'':<22} {'median mm':>9} {'deg':>6} {'yaw p99':>8} {'max':>6} {'mean signed':>11} {'ms':>5}  "
-          "links chained per session: ATE m")
-    for name, r in nlr.items():
-        label = f"{name} ({r['scan_map_nodes']})" if r["scan_map_nodes"] else name
-        print(f"  {label:<22} {r['median_mm']:>9.1f} {r['median_deg']:>6.3f} {r['p99_deg']:>8.2f} {r['max_deg']:>6.2f} "
-              f"{r['mean_deg']:>11.4f} {r['median_ms']:>5.1f}  {' / '.join(f'{v:.3f}' for v in r['chain_ate_m'])}"
-              f"{'  (' + str(r['refused']) + ' refused)' if r['refused'] else ''}")
+    print_neighbor_links(f"{1 if args.quick else 5} simulated session(s)", nlr)
+    real_logs = ("intel",) if args.quick else ("intel", "aces", "csail")
+    nlr_real = neighbor_links_real(real_logs)
+    print_neighbor_links(f"real CARMEN logs {' / '.join(real_logs)} with simulated wheel errors", nlr_real)
     counts = inlier_counts()
     print("\nInliers (inlier_distance 0.1 m): mutual matches | mutual + NNDR 0.8")
     for r in counts:
@@ -279,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
                      "min_true_inliers": min(r[key]["inliers"] for r in true)} for key in ("mutual", "nndr")}
     print(f"  summary: {summary}")
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps({"ransac": ransac, "icp": icp, "neighbor_link_refining": nlr,
+    RESULTS.write_text(json.dumps({"ransac": ransac, "icp": icp, "neighbor_link_refining": nlr, "neighbor_links_real": nlr_real,
                                    "inlier_counts": counts, "summary": summary, "quick": args.quick}, indent=2))
     print(f"wrote {RESULTS}")
     return 0
