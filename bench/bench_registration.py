@@ -1,4 +1,4 @@
-"""Loop closure registration on real data: RANSAC accuracy/time, ICP accuracy/time, min_inliers.
+"""Registration: RANSAC and ICP accuracy/time on real data, neighbour links, min_inliers.
 
 Usage: ``python bench/bench_registration.py [--quick]``. Prints tables and writes
 ``bench/results/registration.json``.
@@ -9,7 +9,11 @@ Usage: ``python bench/bench_registration.py [--quick]``. Prints tables and write
    (Kabsch on every inlier) instead of the reweighted one.
 2. ICP (2D point-to-line): Intel lab corrected log, scans k -> k+5 overlapping >= 50 % at the
    reference, started 10 cm / 3 degrees off; error and time (median). Baseline: the start error.
-3. min_inliers: RANSAC inlier counts of true pairs (same scene) vs wrong pairs (TUM frames vs
+3. Neighbour links (RGBD/NeighborLinkRefining): wheel odometry, ICP against the previous scan and
+   ICP against the last ``neighbor_scan_map_nodes`` scans, on the simulated sessions and on the
+   real CARMEN logs (with simulated wheel errors); per-link error and the drift of the chained
+   links. Baseline in the same run: the odometry and the previous scan alone.
+4. min_inliers: RANSAC inlier counts of true pairs (same scene) vs wrong pairs (TUM frames vs
    the RTAB-Map repository frames, different scenes), with mutual matches, and with mutual
    matches + the NNDR test (0.8) that the vocabulary applies.
 """
@@ -247,9 +251,9 @@ def neighbor_link_refining(sessions: int, frames_used: int | None) -> dict:
         covariances = [f.odom_covariance for f in frames]
         del frames
         stamps = np.array(session.stamps_ns[:len(scans)], dtype=np.int64)
+        truth = list(session.T_world_base[:len(scans)])
         for kind in NEIGHBOR_LINK_KINDS:
-            runs[kind].append(_chain_neighbor_links(scans, odometry, covariances, list(session.T_world_base[:len(scans)]),
-                                                    stamps, kind, params))
+            runs[kind].append(_chain_neighbor_links(scans, odometry, covariances, truth, stamps, kind, params))
     return {kind: _summarise_links(r) for kind, r in runs.items()}
 
 
@@ -330,8 +334,9 @@ def main(argv: list[str] | None = None) -> int:
                      "min_true_inliers": min(r[key]["inliers"] for r in true)} for key in ("mutual", "nndr")}
     print(f"  summary: {summary}")
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps({"ransac": ransac, "icp": icp, "neighbor_link_refining": nlr, "neighbor_links_real": nlr_real,
-                                   "inlier_counts": counts, "summary": summary, "quick": args.quick}, indent=2))
+    RESULTS.write_text(json.dumps({"ransac": ransac, "icp": icp, "neighbor_link_refining": nlr,
+                                   "neighbor_links_real": nlr_real, "inlier_counts": counts, "summary": summary,
+                                   "quick": args.quick}, indent=2))
     print(f"wrote {RESULTS}")
     return 0
 

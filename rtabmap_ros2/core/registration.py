@@ -525,5 +525,5 @@ def refine_neighbor_link(scan_map: np.ndarray, new_scan: LaserScan, T_odom: np.n
     return T, info
 
 
-__all__ = ["Registration", "assemble_scan_map", "correspondences", "icp_2d", "kabsch", "ransac_rigid", "refine_neighbor_link", "register",
-           "words_3d"]
+__all__ = ["Registration", "assemble_scan_map", "correspondences", "icp_2d", "kabsch", "ransac_rigid",
+           "refine_neighbor_link", "register", "words_3d"]

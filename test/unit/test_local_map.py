@@ -93,8 +93,8 @@ def test_odometry_error_within_its_noise_does_not_leak_into_a_well_constrained_l
     previous = scan_of_walls(transforms.identity(), ROOM, rng)
     new = scan_of_walls(truth, ROOM, rng)
     info = np.diag(1.0 / np.array([1e-4, 1e-4, 1e-6, 1e-6, 1e-6, np.deg2rad(0.13) ** 2]))
-    links = [refine_neighbor_link(previous.points_base(), new, truth @ transforms.from_xy_yaw(0.01 * s, 0.0, np.deg2rad(0.2 * s)),
-                                  info, RegistrationParams())[0] for s in (-1, 1)]
+    odometry = [truth @ transforms.from_xy_yaw(0.01 * s, 0.0, np.deg2rad(0.2 * s)) for s in (-1, 1)]
+    links = [refine_neighbor_link(previous.points_base(), new, T, info, RegistrationParams())[0] for T in odometry]
     difference = transforms.relative(*links)
     # Odometry 0.4 deg and 2 cm apart (each within 2 sigma); averaging it in moved the link 0.04 deg.
     assert abs(transforms.yaw_of(difference)) < np.deg2rad(0.005)
