@@ -194,6 +194,13 @@ CONSENSUS_DISTANCE_M = 0.5
 CONSENSUS_ANGLE_RAD = np.deg2rad(10.0)
 
 
+def agree(difference: np.ndarray) -> bool:
+    """True when two alignments whose 4x4 ``difference`` (inv(A) @ B) is given agree within
+    :data:`CONSENSUS_DISTANCE_M` / :data:`CONSENSUS_ANGLE_RAD` (``_support`` does all pairs at once)."""
+    return bool(np.linalg.norm(difference[:3, 3]) < CONSENSUS_DISTANCE_M
+                and transforms.rotation_angle(difference) < CONSENSUS_ANGLE_RAD)
+
+
 def consensus_guess(root: int, root_pose: np.ndarray, links: list[Link]) -> dict[int, np.ndarray]:
     """Initial guess robust to false loop closures: odometry chains placed by consensus.
 

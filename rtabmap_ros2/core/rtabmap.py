@@ -30,8 +30,8 @@ from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
 from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
-from rtabmap_ros2.core.graph import (CONSENSUS_ANGLE_RAD, CONSENSUS_DISTANCE_M, Graph, Link, LinkType, chain_poses,
-                                     consensus_guess, default_information, loop_type)
+from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, chain_poses, consensus_guess, default_information,
+                                     loop_type)
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import optimize
 from rtabmap_ros2.core.params import Params
@@ -438,8 +438,7 @@ class Rtabmap:
             implied = [T_from @ l.T_from_to @ transforms.inverse(T_to) for l, T_from, T_to in
                        ((held, held_from.T_odom_base, old_poses[0]), (link, new_from.T_odom_base, old_poses[1]))]
             difference = transforms.inverse(implied[0]) @ implied[1]
-            if (np.linalg.norm(difference[:3, 3]) < CONSENSUS_DISTANCE_M
-                    and transforms.rotation_angle(difference) < CONSENSUS_ANGLE_RAD):
+            if agree(difference):
                 agreeing += 1
                 apart = max(apart, min(np.linalg.norm(held_from.T_odom_base[:3, 3] - new_from.T_odom_base[:3, 3]),
                                        np.linalg.norm(old_poses[0][:3, 3] - old_poses[1][:3, 3])))
@@ -614,9 +613,7 @@ class Rtabmap:
             if link.type is not LinkType.LOOP_INTER:
                 continue
             pair = tuple(sorted((map_ids[link.from_id], map_ids[link.to_id])))
-            residual = link.residual(poses[link.from_id], poses[link.to_id])
-            ok = (np.linalg.norm(residual[:3, 3]) < CONSENSUS_DISTANCE_M
-                  and transforms.rotation_angle(residual) < CONSENSUS_ANGLE_RAD)
+            ok = agree(link.residual(poses[link.from_id], poses[link.to_id]))
             counts = held.setdefault(pair, [0, 0])
             counts[0] += ok
             counts[1] += 1
