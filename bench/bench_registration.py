@@ -244,12 +244,10 @@ def neighbor_link_refining(sessions: int, frames_used: int | None) -> dict:
     params = RegistrationParams()
     runs = {kind: [] for kind in NEIGHBOR_LINK_KINDS}
     for session in make_sessions(world)[:sessions]:
-        # Scans and odometry only (the images of a whole session would take gigabytes).
-        frames = list(itertools.islice(session_frames(world, session), frames_used))
-        scans = [f.scan for f in frames]
-        odometry = [f.T_odom_base for f in frames]
-        covariances = [f.odom_covariance for f in frames]
-        del frames
+        # Scans and odometry only, frame by frame (a whole session's images would take gigabytes).
+        kept = [(f.scan, f.T_odom_base, f.odom_covariance)
+                for f in itertools.islice(session_frames(world, session), frames_used)]
+        scans, odometry, covariances = (list(column) for column in zip(*kept))
         stamps = np.array(session.stamps_ns[:len(scans)], dtype=np.int64)
         truth = list(session.T_world_base[:len(scans)])
         for kind in NEIGHBOR_LINK_KINDS:
