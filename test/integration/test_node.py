@@ -68,10 +68,16 @@ class SensorRig(Node):
         }
         self.received: dict[str, list] = {"mapPath": [], "map": [], "mapGraph": [], "info": []}
         self.lock = threading.Lock()
-        for topic, msg_type, qos in (("mapPath", PathMsg, 10), ("map", OccupancyGrid, LATCHED),
-                                     ("mapGraph", MarkerArray, 10), ("info", DiagnosticArray, 10)):
-            self.create_subscription(msg_type, topic, self._recorder(topic), qos)
+        self.subs = {topic: self.create_subscription(msg_type, topic, self._recorder(topic), qos)
+                     for topic, msg_type, qos in (("mapPath", PathMsg, 10), ("map", OccupancyGrid, LATCHED),
+                                                  ("mapGraph", MarkerArray, 10), ("info", DiagnosticArray, 10))}
         self.clients_ = {}
+
+    def connected(self) -> bool:
+        """Discovery done both ways: the node subscribes to every sensor topic and publishes every
+        topic recorded here (a volatile message published before that is lost to the recorder)."""
+        return (all(p.get_subscription_count() > 0 for p in self.pubs.values())
+                and all(s.get_publisher_count() > 0 for s in self.subs.values()))
 
     def _recorder(self, topic):
         def record(msg):
@@ -134,7 +140,7 @@ class Harness:
         self.executor.add_node(self.tester)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
-        assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in self.tester.pubs.values()))
+        assert wait_for(self.tester.connected)
 
     def feed(self, frame, stamp_ns=None) -> dict[str, str]:
         """Publish one frame and wait until the node reports it on info."""
@@ -394,10 +400,10 @@ def test_node_subprocess_sigterm_flushes_database(ros_env, context, tmp_path, fr
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
     try:
-        assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in tester.pubs.values()), 60)
+        assert wait_for(tester.connected, 60)
         for i, f in enumerate(frames[:5]):
             tester.publish_frame(f)
-            assert wait_for(lambda: tester.count("info") > i), "subprocess node did not report a frame"
+            assert wait_for(lambda: tester.count("info") > i), f"subprocess node did not report frame {i}"
         last_id = int(tester.infos()[-1]["location_id"])
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=60)
