@@ -43,7 +43,7 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "rtabmap-ros2 = rtabmap_ros2.io.cli:main",
+            "rtabmap-ros2 = rtabmap_ros2.cli.cli:main",
             "rtabmap = rtabmap_ros2.ros.node:main",
         ],
     },

@@ -104,7 +104,7 @@ def bench_latency(quick: bool, qos: str) -> dict | None:
         thread.start()
         load_before = os.getloadavg()[0]
         t0 = time.monotonic()
-        play = subprocess.run([sys.executable, "-m", "rtabmap_ros2.io.cli", "play", str(bag), "--delay", "2"],
+        play = subprocess.run([sys.executable, "-m", "rtabmap_ros2.cli.cli", "play", str(bag), "--delay", "2"],
                               env=env, capture_output=True, text=True, timeout=600)
         # play returns once reliable subscribers acknowledged everything; then let the queue drain.
         deadline = time.monotonic() + 30

@@ -38,7 +38,7 @@ from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.params import Params, default_config_path
 from rtabmap_ros2.core.rtabmap import TIMING_KEYS, Rtabmap
 from rtabmap_ros2.io.bag import BagDataset
-from rtabmap_ros2.io.cmd_map import map_datasets
+from rtabmap_ros2.cli.cmd_map import map_datasets
 from rtabmap_ros2.io.export import export_global_map
 from rtabmap_ros2.io.trajectory import Trajectory, associate, ate, read_tum
 
@@ -60,7 +60,7 @@ PAPER = {
 def ensure_data(data: Path, quick: bool) -> Path:
     """Simulated bags in ``data`` (generated with ``rtabmap-ros2 simulate`` if missing)."""
     if not (data / "ground_truth.txt").is_file():
-        cmd = [sys.executable, "-m", "rtabmap_ros2.io.cli", "simulate", "--out", str(data)] + (["--small"] if quick else [])
+        cmd = [sys.executable, "-m", "rtabmap_ros2.cli.cli", "simulate", "--out", str(data)] + (["--small"] if quick else [])
         print("simulating:", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
     return data

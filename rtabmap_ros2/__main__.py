@@ -2,6 +2,6 @@
 
 import sys
 
-from rtabmap_ros2.io.cli import main
+from rtabmap_ros2.cli.cli import main
 
 sys.exit(main())

@@ -60,7 +60,7 @@ def test_demo_small_end_to_end(demo_run):
 def test_demo_reuses_matching_simulation(demo_run, tmp_path):
     out, proc = demo_run
     assert proc.returncode == 0, proc.stderr[-3000:]
-    from rtabmap_ros2.io.cmd_demo import _simulation_matches
+    from rtabmap_ros2.cli.cmd_demo import _simulation_matches
 
     assert _simulation_matches(out / "sim", sessions=2, seed=0, small=True)
     assert not _simulation_matches(out / "sim", sessions=2, seed=1, small=True)

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-CLI = [sys.executable, "-m", "rtabmap_ros2.io.cli"]
+CLI = [sys.executable, "-m", "rtabmap_ros2.cli.cli"]
 
 
 def run(*args, cwd=None) -> subprocess.CompletedProcess:

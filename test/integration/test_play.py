@@ -149,7 +149,7 @@ def test_play_refuses_bad_input(context, bag, tmp_path):
 
 def test_play_command_line(ros_env, context, bag, receiver):
     """The CLI loops until Ctrl-C; a whole pass arrives in order whatever the discovery delay."""
-    proc = subprocess.Popen([sys.executable, "-m", "rtabmap_ros2.io.cli", "play", str(bag), "--rate", "4",
+    proc = subprocess.Popen([sys.executable, "-m", "rtabmap_ros2.cli.cli", "play", str(bag), "--rate", "4",
                              "--loop", "--delay", "1.0"], env=ros_env, stderr=subprocess.PIPE, text=True)
     try:
         complete = [f"s{i}" for i in range(N_IMAGES)]
@@ -162,6 +162,6 @@ def test_play_command_line(ros_env, context, bag, receiver):
             proc.kill()
     assert proc.returncode == 0, err
     assert "/chatter:" in err and "/rgb/image:" in err
-    bad = subprocess.run([sys.executable, "-m", "rtabmap_ros2.io.cli", "play", str(bag.parent / "missing")],
+    bad = subprocess.run([sys.executable, "-m", "rtabmap_ros2.cli.cli", "play", str(bag.parent / "missing")],
                          env=ros_env, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "error:" in bad.stderr and "does not exist" in bad.stderr

@@ -97,13 +97,13 @@ def test_intel_converts_and_reads_back(tmp_path, shared_data):
 
 def test_cli_subcommand(tmp_path):
     log = small_log(tmp_path / "x.log.gz")
-    out = subprocess.run([sys.executable, "-m", "rtabmap_ros2.io.cli", "carmen2bag", str(log), "--out",
+    out = subprocess.run([sys.executable, "-m", "rtabmap_ros2.cli.cli", "carmen2bag", str(log), "--out",
                           str(tmp_path / "b"), "--seed", "4", "--noise-trans", "0.05", "--noise-rot", "2"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "5 scans" in out.stdout
     assert (tmp_path / "b" / "ground_truth.txt").is_file()
-    again = subprocess.run([sys.executable, "-m", "rtabmap_ros2.io.cli", "carmen2bag", str(log), "--out",
+    again = subprocess.run([sys.executable, "-m", "rtabmap_ros2.cli.cli", "carmen2bag", str(log), "--out",
                             str(tmp_path / "b")], capture_output=True, text=True, timeout=120)
     assert again.returncode == 2 and "already exists" in again.stderr
 

@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Optional
 
-from rtabmap_ros2.io.common_args import add_param_arguments
+from rtabmap_ros2.cli.common_args import add_param_arguments
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     from rtabmap_ros2.core.rtabmap import Rtabmap
     from rtabmap_ros2.errors import BagError
     from rtabmap_ros2.io.bag import BagDataset
-    from rtabmap_ros2.io.common_args import params_from_args
+    from rtabmap_ros2.cli.common_args import params_from_args
 
     params = params_from_args(args)
     db_path = Path(args.db).expanduser()

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from rtabmap_ros2.io.common_args import add_param_arguments
+from rtabmap_ros2.cli.common_args import add_param_arguments
 
 
 def add_parser(subparsers) -> None:
@@ -23,7 +23,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtabmap_ros2.io.common_args import params_from_args
+    from rtabmap_ros2.cli.common_args import params_from_args
     from rtabmap_ros2.io.export import export_global_map
 
     params = params_from_args(args)

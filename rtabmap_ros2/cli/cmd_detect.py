@@ -13,7 +13,7 @@ import logging
 import sys
 from pathlib import Path
 
-from rtabmap_ros2.io.common_args import add_param_arguments
+from rtabmap_ros2.cli.common_args import add_param_arguments
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     from rtabmap_ros2.core.rtabmap import Rtabmap
     from rtabmap_ros2.errors import SensorDataError
-    from rtabmap_ros2.io.common_args import params_from_args
+    from rtabmap_ros2.cli.common_args import params_from_args
     from rtabmap_ros2.io.datasets import ImageFolderDataset
     from rtabmap_ros2.io.evaluation import evaluate_rows, load_ground_truth
 

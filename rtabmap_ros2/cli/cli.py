@@ -1,6 +1,6 @@
 """The ``rtabmap-ros2`` command line: one entry point, one module per subcommand.
 
-Each subcommand lives in ``rtabmap_ros2/io/cmd_<name>.py`` with ``add_parser(subparsers)`` and
+Each subcommand lives in ``rtabmap_ros2/cli/cmd_<name>.py`` with ``add_parser(subparsers)`` and
 ``run(args) -> int``; heavy imports happen inside ``run``. Package errors become
 ``error: <message>`` and exit code 2.
 """
@@ -39,13 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in SUBCOMMANDS:
-        try:
-            module = importlib.import_module(f"rtabmap_ros2.io.cmd_{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"rtabmap_ros2.io.cmd_{name}":
-                raise
-            continue  # a subcommand not written yet
-        module.add_parser(subparsers)
+        importlib.import_module(f"rtabmap_ros2.cli.cmd_{name}").add_parser(subparsers)
     return parser
 
 

@@ -22,7 +22,7 @@ import json
 import time
 from pathlib import Path
 
-from rtabmap_ros2.io.common_args import add_param_arguments
+from rtabmap_ros2.cli.common_args import add_param_arguments
 
 DEFAULT_OUT = "rtabmap_demo"
 DEFAULT_SESSIONS, DEFAULT_SMALL_SESSIONS = 5, 2
@@ -79,8 +79,8 @@ def _prepare_simulation(sim_dir: Path, sessions: int, seed: int, small: bool) ->
 def run(args: argparse.Namespace) -> int:
     from rtabmap_ros2.core.rtabmap import Rtabmap
     from rtabmap_ros2.io.bag import BagDataset
-    from rtabmap_ros2.io.cmd_map import map_datasets
-    from rtabmap_ros2.io.common_args import params_from_args
+    from rtabmap_ros2.cli.cmd_map import map_datasets
+    from rtabmap_ros2.cli.common_args import params_from_args
     from rtabmap_ros2.io.export import export_global_map
     from rtabmap_ros2.io.report import ReportInputs, write_report
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from rtabmap_ros2.io.common_args import add_param_arguments, params_from_args
+from rtabmap_ros2.cli.common_args import add_param_arguments, params_from_args
 
 
 def add_parser(subparsers) -> None:
