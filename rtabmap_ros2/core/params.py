@@ -419,6 +419,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Rtabmap/TimeThr": ("memory.time_threshold_ms", float),
     "Rtabmap/MaxRetrieved": ("memory.max_retrieved", int),
     "Rtabmap/LoopThr": ("bayes.loop_threshold", float),
+    "Bayes/VirtualPlacePriorThr": ("bayes.virtual_place_prior", float),
     "Kp/NndrRatio": ("vocabulary.nndr", float),
     "Kp/NewWordsComparedTogether": ("vocabulary.new_words_compared_together",
                                     lambda v: _to_bool("Kp/NewWordsComparedTogether", v)),

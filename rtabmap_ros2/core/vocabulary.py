@@ -118,13 +118,31 @@ def _as_ids(word_ids: Iterable[int] | np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(word_ids, dtype=np.int64).reshape(-1))
 
 
-def _pairwise_distances(descriptors: np.ndarray, binary: bool) -> np.ndarray:
-    """(N,N) distances between the rows: Hamming bits (uint8 rows) or L2 (float rows)."""
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+# Nearest rows searched per descriptor to find its nearest other row of the frame (itself, exact
+# duplicates and one more): a row is "affected" when any other row is nearer than its second word.
+_WITHIN_FRAME_K = 3
+
+
+def _nearest_other(descriptors: np.ndarray, binary: bool) -> np.ndarray:
+    """(N,) distance of every row to its nearest *other* row of the same array (inf when alone)."""
+    n = descriptors.shape[0]
+    k = min(n, _WITHIN_FRAME_K)
+    with _omp_threads(SEARCH_THREADS):
+        if binary:
+            distances, rows = faiss.knn_hamming(descriptors, descriptors, k)
+        else:
+            distances, rows = faiss.knn(descriptors, descriptors, k)
+    distances = distances.astype(np.float64) if binary else np.sqrt(np.maximum(distances, 0.0))
+    others = rows != np.arange(n)[:, None]
+    return np.where(others, distances, np.inf).min(axis=1)
+
+
+def _distances_to(descriptors: np.ndarray, i: int, rows: list[int], binary: bool) -> np.ndarray:
+    """Distances from row i to the given rows: Hamming bits (uint8) or L2 (float)."""
     if binary:
-        bits = np.unpackbits(descriptors, axis=1).astype(np.float32)
-        return bits @ (1.0 - bits).T + (1.0 - bits) @ bits.T
-    squared = (descriptors * descriptors).sum(axis=1)
-    return np.sqrt(np.maximum(squared[:, None] + squared[None, :] - 2.0 * descriptors @ descriptors.T, 0.0))
+        return _POPCOUNT[np.bitwise_xor(descriptors[rows], descriptors[i])].sum(axis=1, dtype=np.int64).astype(float)
+    return np.linalg.norm(descriptors[rows] - descriptors[i], axis=1)
 
 
 def _ivf_lists(n_words: int) -> int:
@@ -303,19 +321,17 @@ class Vocabulary:
             distances = np.full((n, NEAREST_NEIGHBOURS), np.inf, np.float32)
             neighbours = np.full((n, NEAREST_NEIGHBOURS), -1, np.int64)
         distances = np.where(neighbours >= 0, distances, np.inf)
-        within = _pairwise_distances(descriptors, self.binary)
         nndr = self.params.nndr
-        # Only a descriptor with an earlier one of the frame nearer than its second vocabulary
+        # Only a descriptor with another one of the frame nearer than its second vocabulary
         # neighbour can be changed by the frame's new words; the others keep the vocabulary's answer.
-        earlier = np.where(np.tri(n, n, -1, dtype=bool), within, np.inf).min(axis=1)
-        affected = (earlier < distances[:, 1]).tolist()
+        affected = (_nearest_other(descriptors, self.binary) < distances[:, 1]).tolist()
         new_rows: list[int] = []  # descriptors that made a new word, in order
         next_id = self.next_word_id
         for i in range(n):
             d1, d2 = float(distances[i, 0]), float(distances[i, 1])
             best = int(neighbours[i, 0])
             if new_rows and affected[i]:
-                own = within[i, new_rows]
+                own = _distances_to(descriptors, i, new_rows, self.binary)
                 for k in np.argsort(own, kind="stable")[:NEAREST_NEIGHBOURS].tolist():
                     d = float(own[k])
                     if d < d1:
