@@ -59,6 +59,7 @@ ABLATION = (
     ("+ rehearsal similarity 0.6", OLD_DEFAULTS + ("Mem/RehearsalSimilarity=0.6",)),
     ("+ loop ratio 0.9", OLD_DEFAULTS + ("Rtabmap/LoopRatio=0.9",)),
     ("+ virtual place prior 0.95", OLD_DEFAULTS + ("Bayes/VirtualPlacePriorThr=0.95",)),
+    ("all but virtual place prior", ("Bayes/VirtualPlacePriorThr=0.9",)),
     ("new defaults (all)", ()),
 )
 REVISIT_RATIO = 0.35

@@ -110,7 +110,9 @@ class MemoryParams:
 
     stm_size: int = _p(30, "T_STM: number of locations in Short-Term Memory", "locations")
     rehearsal_similarity: float = _p(
-        0.20, "T_similarity: merge the new location with the previous one if Eq. 1 is above this", "ratio"
+        0.60, "T_similarity: merge the new location with the previous one if Eq. 1 is above this "
+        "(RTAB-Map's default; the paper's 0.20 merged a moving camera's overlapping views: 2,352 of "
+        "3,000 images, and detection precision fell, bench/bench_detect.py --ablation)", "ratio"
     )
     rehearsal_max_distance: float = _p(
         0.05, "SLAM mode: the camera moved when its neighbour link is longer than this along an axis; "
@@ -159,15 +161,20 @@ class BayesParams:
         "this (RTAB-Map's implementation of §III-D; 2014: H = 0.11)", "probability")
     sigma: float = _p(1.6, "Std. deviation of the discretised Gaussian of the transition model", "locations")
     neighborhood: int = _p(16, "Neighbours (graph hops) reached by the transition model", "locations")
-    virtual_place_prior: float = _p(0.9, "p(S_t=-1 | S_t-1=-1), the new-location persistence", "probability")
+    virtual_place_prior: float = _p(
+        0.95, "p(S_t=-1 | S_t-1=-1), the new-location persistence (RTAB-Map's Bayes/VirtualPlacePriorThr; "
+        "paper and RTAB-Map: 0.9). With 0.9 the filter's resting value of 1 - p(S_t=-1) on a new place is "
+        "~0.13 when the new-location likelihood mu/sigma + 1 is ~1.75, as on perceptually aliased "
+        "sequences, above T_loop: 0.95 brings it to ~0.06 (bench/bench_detect.py --ablation)", "probability")
     loop_closure_prior: float = _p(0.9, "Sum of p(S_t>=0 | S_t-1=j) over the neighbourhood of j", "probability")
     likelihood: str = _p(
         "tf_idf", "Raw score of a WM location before Eq. 3-4: tf_idf (RTAB-Map's Kp/TfIdfLikelihoodUsed: "
         "sum over the frame's words of n_wj log10(N / n_w) / n_j, over the inverted index) or eq1 "
         "(the paper's Eq. 1 similarity)")
     loop_ratio: float = _p(
-        0.0, "RTAB-Map's Rtabmap/LoopRatio: reject a hypothesis below this ratio of the previous "
-        "frame's hypothesis value, or when the previous value was 0 (0 = off)", "ratio")
+        0.9, "RTAB-Map's Rtabmap/LoopRatio: reject a hypothesis below this ratio of the previous "
+        "frame's hypothesis value, or when the previous value was 0 (0 = off, RTAB-Map's default; its "
+        "2013 code used 0.9, as here: bench/bench_detect.py --ablation)", "ratio")
 
     def __post_init__(self) -> None:
         _check(0.0 <= self.loop_threshold <= 1.0, "bayes.loop_threshold", self.loop_threshold, "in [0, 1]")
