@@ -400,7 +400,8 @@ def main() -> int:
     parser.add_argument("--jobs", type=int, default=2, help="--ablation: runs at a time")
     parser.add_argument("--single", type=float, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
-    parser.add_argument("--cached-features", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--cached-features", action="store_true",
+                        help="T_time sweep: features extracted once per image (features.npz beside the images)")
     args = parser.parse_args()
     n = args.n or (QUICK_IMAGES if args.quick else FULL_IMAGES)
     if args.single is not None:
@@ -418,7 +419,7 @@ def main() -> int:
     for t in thresholds:
         t0 = time.perf_counter()
         try:
-            result = single(folder, n, t)
+            result = single(folder, n, t, cached=args.cached_features)
         except RuntimeError as exc:
             print(exc, file=sys.stderr)
             return 1
