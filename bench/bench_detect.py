@@ -268,20 +268,30 @@ def ablation(n: int, args: argparse.Namespace) -> int:
     folders = [ensure_sequence(n, args.data, seed) for seed in args.seeds]
     configs = [c for c in ABLATION if not args.configs or any(k in c[0] for k in args.configs)]
     runs = []
-    jobs = [(label, overrides, folder) for label, overrides in configs for folder in folders]
+    # The new and old defaults first: the rest of the table explains their difference.
+    order = sorted(configs, key=lambda c: (c[0] not in ("new defaults (all)", "old defaults"), configs.index(c)))
+    jobs = [(label, overrides, folder) for label, overrides in order for folder in folders]
     from concurrent.futures import ThreadPoolExecutor
 
     def work(job):
         label, overrides, folder = job
-        t0 = time.perf_counter()
-        r = single(folder, n, 0.7, overrides, cached=True)
-        print(f"{label} / {folder.name}: {time.perf_counter() - t0:.0f} s", flush=True)
+        # Each run's result is kept beside the images: an interrupted ablation resumes where it stopped.
+        key = "_".join(o.replace("/", "-").replace("=", "-") for o in overrides) or "defaults"
+        done = folder / f"ablation_{key}.json"
+        if done.exists() and not args.rerun:
+            r = json.loads(done.read_text())
+        else:
+            t0 = time.perf_counter()
+            r = single(folder, n, 0.7, overrides, cached=True)
+            done.write_text(json.dumps(r))
+            print(f"{label} / {folder.name}: {time.perf_counter() - t0:.0f} s", flush=True)
         return {"config": label, "overrides": list(overrides), "seed": int(folder.name.rsplit('_', 1)[1]),
                 **_summary(r["evaluation"]), "ptime_median_ms": r["ptime_median_ms"], "ptime_max_ms": r["ptime_max_ms"],
                 "max_wm_size": r["max_wm_size"], "merged": r["merged"], "load_avg_after": r["load_avg_after"]}
 
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         runs = list(pool.map(work, jobs))
+    runs.sort(key=lambda r: ([c[0] for c in configs].index(r["config"]), r["seed"]))
     head = (f"{'configuration':32} {'seed':>5} {'prec %':>6} {'rec %':>6} {'R@100P %':>8} {'med pT ms':>9} "
             f"{'maxWM':>6} {'merged':>6}")
     lines = [f"{n} images per seed, T_time 0.7 s, T_loop 0.11 (origin policy)", head, "-" * len(head)]
@@ -398,6 +408,7 @@ def main() -> int:
     parser.add_argument("--rerun-reference", action="store_true", help="do not reuse its detections.csv")
     parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS), help="sequences (--ablation, --reference)")
     parser.add_argument("--jobs", type=int, default=2, help="--ablation: runs at a time")
+    parser.add_argument("--rerun", action="store_true", help="--ablation: do not reuse the runs kept beside the images")
     parser.add_argument("--single", type=float, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
     parser.add_argument("--cached-features", action="store_true",
