@@ -408,6 +408,8 @@ def main() -> int:
     parser.add_argument("--rerun-reference", action="store_true", help="do not reuse its detections.csv")
     parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS), help="sequences (--ablation, --reference)")
     parser.add_argument("--jobs", type=int, default=2, help="--ablation: runs at a time")
+    parser.add_argument("--parallel-sweep", action="store_true",
+                        help="T_time sweep: --jobs runs at a time (faster, timings less comparable)")
     parser.add_argument("--rerun", action="store_true", help="--ablation: do not reuse the runs kept beside the images")
     parser.add_argument("--single", type=float, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
@@ -427,10 +429,13 @@ def main() -> int:
     thresholds = args.time_thresholds or (QUICK_T_TIME_S if args.quick else DEFAULT_T_TIME_S)
     gt_positives = None
     results = previous_runs(n, args, thresholds) if args.append else []
-    for t in thresholds:
-        t0 = time.perf_counter()
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max_workers=args.jobs if args.parallel_sweep else 1)
+    pending = [(t, time.perf_counter(), pool.submit(single, folder, n, t, (), args.cached_features)) for t in thresholds]
+    for t, t0, future in pending:
         try:
-            result = single(folder, n, t, cached=args.cached_features)
+            result = future.result()
         except RuntimeError as exc:
             print(exc, file=sys.stderr)
             return 1
