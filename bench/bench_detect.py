@@ -367,7 +367,9 @@ def reference_side_by_side(n: int, args: argparse.Namespace) -> int:
             rows.append({"location_id": int(r["location_id"]), "loop_closure_id": int(r["loop_closure_id"]),
                          "highest_hypothesis_id": int(r["highest_hypothesis_id"]),
                          "highest_hypothesis_value": float(r["highest_hypothesis_value"]),
-                         "process_time_ms": float(r["process_time_ms"])})
+                         "process_time_ms": float(r["process_time_ms"]),
+                         # The reference keeps the older id when rehearsal merges: no origin chain.
+                         "merged_id": 0})
         gt = load_ground_truth(folder / "ground_truth.png", n)
         times = np.array([r["process_time_ms"] for r in rows])
         ref = {"seed": seed, "implementation": "RTAB-Map 0.22.1 C++", **_summary(evaluate_rows(gt, rows)),
