@@ -91,9 +91,11 @@ class VocabularyParams:
         4.0, "IVF: retrain the coarse quantiser when the vocabulary grew by this factor since the "
         "last training", "ratio")
     ivf_swap_frames: int = _p(
-        50, "IVF: a background (re)build is swapped in this many frames (quantize calls) after it "
-        "started, waiting for it then if needed: the same images give the same words whatever the load",
-        "frames")
+        300, "IVF: a background (re)build is swapped in this many frames (quantize calls) after it "
+        "started, waiting for it then if needed: the same images give the same words whatever the load. "
+        "Builds take up to ~6 s at 200k words on one thread (bench/bench_vocabulary.py); with 50 frames "
+        "the 3,000-image runs waited for them (max pTime 7-12 s on a loaded machine); meanwhile the "
+        "exact flat index serves", "frames")
 
     def __post_init__(self) -> None:
         _check(0.0 < self.nndr <= 1.0, "vocabulary.nndr", self.nndr, "in (0, 1]")
