@@ -280,6 +280,8 @@ def ablation(n: int, args: argparse.Namespace) -> int:
         done = folder / f"ablation_{key}.json"
         if done.exists() and not args.rerun:
             r = json.loads(done.read_text())
+        elif args.report_only:
+            return None
         else:
             t0 = time.perf_counter()
             r = single(folder, n, 0.7, overrides, cached=True)
@@ -290,7 +292,8 @@ def ablation(n: int, args: argparse.Namespace) -> int:
                 "max_wm_size": r["max_wm_size"], "merged": r["merged"], "load_avg_after": r["load_avg_after"]}
 
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        runs = list(pool.map(work, jobs))
+        runs = [r for r in pool.map(work, jobs) if r is not None]
+    configs = [c for c in configs if any(r["config"] == c[0] for r in runs)]
     runs.sort(key=lambda r: ([c[0] for c in configs].index(r["config"]), r["seed"]))
     head = (f"{'configuration':32} {'seed':>5} {'prec %':>6} {'rec %':>6} {'R@100P %':>8} {'med pT ms':>9} "
             f"{'maxWM':>6} {'merged':>6}")
@@ -412,6 +415,8 @@ def main() -> int:
     parser.add_argument("--jobs", type=int, default=2, help="--ablation: runs at a time")
     parser.add_argument("--parallel-sweep", action="store_true",
                         help="T_time sweep: --jobs runs at a time (faster, timings less comparable)")
+    parser.add_argument("--report-only", action="store_true",
+                        help="--ablation: table of the runs kept beside the images, running none")
     parser.add_argument("--rerun", action="store_true", help="--ablation: do not reuse the runs kept beside the images")
     parser.add_argument("--single", type=float, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
