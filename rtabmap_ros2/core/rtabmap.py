@@ -225,9 +225,7 @@ class Rtabmap:
             protected = self.memory.time_neighbours(hypothesis.location_id) if hypothesis.location_id else set()
             transferred = self.memory.transfer(protected)
             stats.transferred = len(transferred)
-            for node in transferred:
-                self._optimized.pop(node, None)
-                self._map_poses.pop(node, None)
+            self._forget(transferred)
         watch.lap("transfer")
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
@@ -381,6 +379,17 @@ class Rtabmap:
         self._last_odom_stamp_ns = frame.stamp_ns
         self._last_odom_lost = _odometry_lost(frame)
 
+    def _forget(self, nodes: list[int]) -> None:
+        """Nodes that left WM (transferred to LTM, or merged into the new location by rehearsal)
+        leave the local map's state too: what :meth:`local_map` returns names only nodes in
+        memory, also when the next optimisation fails and the last solution is kept."""
+        for node in nodes:
+            self._optimized.pop(node, None)
+            self._map_poses.pop(node, None)
+            self._merged_map_guess.pop(node, None)
+        gone = set(nodes)
+        self._local_links = [link for link in self._local_links if not {link.from_id, link.to_id} & gone]
+
     def _check_planar(self, frame: SensorFrame) -> None:
         """Planar (3 DoF) mode: the parameter, with a laser (2014 §III: the robot is on a plane)."""
         if self._planar is None and frame.T_odom_base is not None:
@@ -428,6 +437,8 @@ class Rtabmap:
         stats.location_id = sig.id
         # Weight update (§III-B) and STM -> WM (Alg. 1 lines 8-10).
         stats.merged_id = memory.rehearse(sig, new_words)
+        if stats.merged_id:
+            self._forget([stats.merged_id])
         memory.update_stm()
         watch.lap("rehearsal")
         if bad:
