@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core import files, transforms
 from rtabmap_ros2.core.graph import Link, LinkType, chain_poses, connected_components
 from rtabmap_ros2.core.params import GraphParams
 from rtabmap_ros2.errors import OptimizationError
@@ -480,7 +480,7 @@ def write_g2o(path, poses: dict[int, np.ndarray], links: list[Link], planar: boo
             values = [*link.T_from_to[:3, 3], *q, *_upper(info)]
             out.append(f"EDGE_SE3:QUAT {link.from_id} {link.to_id} " + " ".join(f"{v:.9g}" for v in values))
     try:
-        Path(path).write_text("\n".join(out) + "\n")
+        files.write_text(path, "\n".join(out) + "\n")
     except OSError as exc:
         raise OptimizationError(f"cannot write g2o file {path}: {exc.strerror}") from exc
 

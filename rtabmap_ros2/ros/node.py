@@ -156,6 +156,17 @@ def new_export_folder(export_dir: str | Path, now: Optional[datetime] = None) ->
     return checked_export_path(root, candidate, create=True)
 
 
+def new_backup_path(database_path: Path, now: Optional[datetime] = None) -> Path:
+    """A free ``<stem>-backup-<YYYYmmdd-HHMMSS[-n]>.db`` next to ``database_path`` (nothing, not even
+    a dangling symlink, at that name)."""
+    stamp = (now or datetime.now()).strftime(EXPORT_STAMP_FORMAT)
+    name, n = f"{database_path.stem}-backup-{stamp}", 1
+    candidate = database_path.with_name(f"{name}.db")
+    while candidate.exists() or candidate.is_symlink():
+        candidate, n = database_path.with_name(f"{name}-{n}.db"), n + 1
+    return candidate
+
+
 def checked_export_path(export_dir: str | Path, path: str | Path, create: bool = False) -> Path:
     """``path`` resolved, refusing anything that leaves ``export_dir``."""
     root = Path(export_dir).expanduser().resolve()
@@ -165,6 +176,13 @@ def checked_export_path(export_dir: str | Path, path: str | Path, create: bool =
     if create:
         resolved.mkdir(parents=False, exist_ok=False)
     return resolved
+
+
+def _remove_if_empty(folder: Path) -> None:
+    try:
+        folder.rmdir()
+    except OSError:
+        pass
 
 
 class RtabmapNode(Node):
@@ -495,9 +513,12 @@ class RtabmapNode(Node):
         self.get_logger().info(f"reset: {self.database_path} emptied")
 
     def backup(self) -> Path:
-        """Copy the database next to itself as ``<stem>-backup-<YYYYmmdd-HHMMSS>.db``."""
-        stamp = datetime.now().strftime(EXPORT_STAMP_FORMAT)
-        path = self.database_path.with_name(f"{self.database_path.stem}-backup-{stamp}.db")
+        """Copy the database next to itself as ``<stem>-backup-<YYYYmmdd-HHMMSS[-n]>.db``.
+
+        A name already taken (a file, or a symlink someone planted at the predictable name) is
+        skipped, never followed; the core writes the copy under a temporary name and links it.
+        """
+        path = new_backup_path(self.database_path)
         self._in_worker(lambda: self._core.backup(path))
         self.get_logger().info(f"database backed up to {path}")
         return path
@@ -549,9 +570,15 @@ class RtabmapNode(Node):
             from rtabmap_ros2.io.export import export_global_map
 
             folder = new_export_folder(self.params.node.export_dir)
+        except Exception as exc:  # noqa: BLE001 - a service must answer; the node keeps running
+            response.success, response.message = False, f"export failed: {type(exc).__name__}: {exc}"
+            self.get_logger().error(response.message)
+            return response
+        try:
             self._in_worker(lambda: self._core.flush())
             summary = export_global_map(self.database_path, folder, self.params)
         except Exception as exc:  # noqa: BLE001 - a service must answer; the node keeps running
+            _remove_if_empty(folder)   # export_global_map removed the files it wrote
             response.success, response.message = False, f"export failed: {type(exc).__name__}: {exc}"
             self.get_logger().error(response.message)
             return response
