@@ -18,10 +18,11 @@ import pytest
 from rtabmap_ros2.core import transforms
 
 TIMEOUT_S = 300
-# Every INDEFINITE_EVERY-th edge of smallGrid3D gets a translation-rotation correlation too strong
-# for its variances (x-roll block [[100, 60], [60, 25]]: determinant < 0).
+# Every INDEFINITE_EVERY-th edge gets an x-qx correlation too strong for its variances: the
+# cross information INDEFINITE_CORRELATION x sqrt(I_xx I_qxqx) makes that 2x2 block's determinant
+# negative (smallGrid3D: [[100, 60], [60, 25]]).
 INDEFINITE_EVERY = 4
-INDEFINITE_CROSS = 60.0
+INDEFINITE_CORRELATION = 1.2
 # g2o's rotation error is the quaternion's vector part (half the angle): gtsam.readG2o reads the
 # rotation information as on angles, so the reference copy is written with the rotation rows and
 # columns halved to mean the same as the file.
@@ -97,16 +98,17 @@ def test_zero_quaternion_edge_is_named(tmp_path):
     _assert_error(optimize(src, tmp_path / "out.g2o"), "graph.g2o:3", "quaternion")
 
 
-def _indefinite_small_grid(shared_data, path):
-    """smallGrid3D with every INDEFINITE_EVERY-th edge's information made indefinite; the edge lines."""
+def _indefinite_copy(graph, path):
+    """``graph`` with every INDEFINITE_EVERY-th edge's information made indefinite; the edge lines."""
     out, changed, edge = [], [], 0
-    for number, line in enumerate((shared_data / "posegraphs" / "smallGrid3D.g2o").read_text().splitlines(), 1):
+    for number, line in enumerate(graph.read_text().splitlines(), 1):
         f = line.split()
         if f and f[0] == "EDGE_SE3:QUAT":
             edge += 1
             if edge % INDEFINITE_EVERY == 0:
                 upper = [float(v) for v in f[10:31]]
-                upper[3] = INDEFINITE_CROSS   # (x, qx) entry: row 0, column 3 of the upper triangle
+                # (x, qx): row 0, column 3 of the upper triangle; (qx, qx) is its 16th entry.
+                upper[3] = INDEFINITE_CORRELATION * np.sqrt(upper[0] * upper[15])
                 f = f[:10] + [f"{v:g}" for v in upper]
                 changed.append((number, int(f[1]), int(f[2])))
                 line = " ".join(f)
@@ -143,10 +145,11 @@ def _gtsam_reference_chi2(src, tmp_path) -> float:
     return 2.0 * graph.error(values)
 
 
-def test_indefinite_information_is_projected_and_matches_gtsam(shared_data, tmp_path):
+@pytest.mark.parametrize("name, edges", [("smallGrid3D", 297), ("parking-garage", 6275)])
+def test_indefinite_information_is_projected_and_matches_gtsam(shared_data, tmp_path, name, edges):
     src, out = tmp_path / "indefinite.g2o", tmp_path / "out.g2o"
-    changed = _indefinite_small_grid(shared_data, src)
-    assert len(changed) > 50
+    changed = _indefinite_copy(shared_data / "posegraphs" / f"{name}.g2o", src)
+    assert len(changed) == edges // INDEFINITE_EVERY
     result = optimize(src, out)
     assert result.returncode == 0, result.stderr
     warnings = [line for line in result.stderr.splitlines() if "not positive definite" in line]
@@ -155,13 +158,13 @@ def test_indefinite_information_is_projected_and_matches_gtsam(shared_data, tmp_
     assert f"{len(changed)} edge(s)" in warnings[0] and f"line {number} (edge {i} -> {j})" in warnings[0]
     chi2 = float(re.search(r"chi2 final:\s+(\S+)", result.stdout).group(1))
     reference = _gtsam_reference_chi2(src, tmp_path)
-    print(f"indefinite smallGrid3D: chi2 ours {chi2:.6g}, gtsam {reference:.6g}")
+    print(f"indefinite {name}: chi2 ours {chi2:.6g}, gtsam {reference:.6g}")
     assert chi2 == pytest.approx(reference, rel=0.01)
     # The optimised graph is written with positive definite information (readable without a warning).
     from rtabmap_ros2.core.optimizer import read_g2o
 
     poses, links, planar = read_g2o(out)
-    assert not planar and len(links) == 297
+    assert not planar and len(links) == edges
     assert all(np.all(np.linalg.eigvalsh(link.information) > 0) for link in links)
     assert transforms.is_rigid(poses[min(poses)])
 
