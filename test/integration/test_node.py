@@ -350,7 +350,7 @@ def test_bad_messages_are_dropped_and_the_node_keeps_running(harness, frames):
     f = frames[1]
     stamp = f.stamp_ns
     bad_rgb = conv.image_to_msg(f.rgb, stamp, "c")
-    bad_rgb.encoding = "yuv422"
+    bad_rgb.encoding = "yuv444"
     t.pubs["rgb"].publish(bad_rgb)
     t.pubs["depth"].publish(conv.depth_to_msg(np.full_like(f.depth_m, np.inf), stamp, "c", "32FC1"))
     empty_scan = conv.scan_to_msg(f.scan, stamp, "laser")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import cv2
+
 import numpy as np
 import pytest
 
@@ -105,7 +107,7 @@ def test_bgr8_bytes_are_reversed(rgb):
 def test_mono8_becomes_gray_rgb(rgb):
     msg = conv.image_to_msg(rgb, 0, "camera", "mono8")
     out = conv.image_from_msg(msg)
-    gray = rgb.mean(axis=2).round().astype(np.uint8)
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)   # luma weights (cv_bridge's)
     for c in range(3):
         np.testing.assert_array_equal(out[:, :, c], gray)
 
@@ -128,8 +130,8 @@ def test_image_step_padding_is_honoured(rgb, encoding):
 
 def test_unsupported_image_encoding_names_it(rgb):
     msg = conv.image_to_msg(rgb, 0, "c")
-    msg.encoding = "yuv422"
-    with pytest.raises(SensorDataError, match="yuv422"):
+    msg.encoding = "yuv444"
+    with pytest.raises(SensorDataError, match="yuv444"):
         conv.image_from_msg(msg)
 
 
