@@ -360,7 +360,8 @@ def test_bad_messages_are_dropped_and_the_node_keeps_running(harness, frames):
     nan_odom.pose.pose.position.x = float("nan")
     t.pubs["odom"].publish(nan_odom)
     t.pubs["odom"].publish(conv.odometry_to_msg(f.T_odom_base, frames[0].stamp_ns - 500_000_000))  # backwards
-    small_depth = conv.depth_to_msg(f.depth_m[::2, ::2], frames[2].stamp_ns, "c")   # size mismatch
+    # Another aspect ratio than the RGB image: not registrable by scaling (half size would be registered).
+    small_depth = conv.depth_to_msg(np.ascontiguousarray(f.depth_m[:, :400]), frames[2].stamp_ns, "c")
     t.publish_frame(frames[2], skip=("depth",))
     t.pubs["depth"].publish(small_depth)
     expected = {"/rgb/image", "/depth/image", "/scan", "/odom", "synchronised set"}
