@@ -616,7 +616,9 @@ class BagDataset:
 
     def __init__(self, path, topics: TopicNames = TopicNames(), sync: SyncParams = SyncParams(),
                  use: Optional[Iterable[str]] = None, T_base_camera: Optional[np.ndarray] = None,
-                 T_base_laser: Optional[np.ndarray] = None, base_frame: Optional[str] = None) -> None:
+                 T_base_laser: Optional[np.ndarray] = None, base_frame: Optional[str] = None,
+                 fallback_T_base_camera: Optional[np.ndarray] = None,
+                 fallback_T_base_laser: Optional[np.ndarray] = None) -> None:
         """Open ``path`` and check its topics.
 
         Args:
@@ -629,6 +631,8 @@ class BagDataset:
                 if it links the frames, else :data:`DEFAULT_T_BASE_CAMERA` / :data:`DEFAULT_T_BASE_LASER`.
             base_frame: robot base frame for /tf_static look-ups; default: the odometry's
                 child_frame_id, else ``base_link``.
+            fallback_T_base_camera, fallback_T_base_laser: used instead of the module defaults when
+                /tf_static does not give the mount (``map --set base_to_camera=[...]``).
         """
         self.path = Path(path)
         self.topics = topics
@@ -636,6 +640,10 @@ class BagDataset:
         self._T_base_camera = None if T_base_camera is None else np.asarray(T_base_camera, dtype=np.float64)
         self._T_base_laser = None if T_base_laser is None else np.asarray(T_base_laser, dtype=np.float64)
         self._base_frame = base_frame
+        self._fallback_camera = DEFAULT_T_BASE_CAMERA if fallback_T_base_camera is None else np.asarray(
+            fallback_T_base_camera, dtype=np.float64)
+        self._fallback_laser = DEFAULT_T_BASE_LASER if fallback_T_base_laser is None else np.asarray(
+            fallback_T_base_laser, dtype=np.float64)
         self._len: Optional[int] = None
         reader = _open_reader(self.path)
         try:
@@ -777,7 +785,7 @@ class BagDataset:
             scan = synced.values.get("scan")
             if scan is not None:
                 current = scan
-                T = self._sensor_transform(scan.msg.header.frame_id, self._T_base_laser, DEFAULT_T_BASE_LASER,
+                T = self._sensor_transform(scan.msg.header.frame_id, self._T_base_laser, self._fallback_laser,
                                            base_frame)
                 frame.scan = scan_from_msg(scan.msg, T)
             rgb = synced.values.get("rgb")
@@ -800,7 +808,7 @@ class BagDataset:
                 else:
                     current = info
                     image_frame_id = (rgb or depth).msg.header.frame_id or info.msg.header.frame_id
-                    T = self._sensor_transform(image_frame_id, self._T_base_camera, DEFAULT_T_BASE_CAMERA,
+                    T = self._sensor_transform(image_frame_id, self._T_base_camera, self._fallback_camera,
                                                base_frame)
                     frame.camera = camera_info_from_msg(info.msg, T)
             register_to_rgb(frame).validate()
@@ -834,17 +842,19 @@ class _MessageSink:
 
 
 def _write_frames(sink: _MessageSink, frames: Iterable[SensorFrame], topics: TopicNames, frame_ids: FrameIds,
-                  rgb_format: str, depth_format: str) -> int:
+                  rgb_format: str, depth_format: str, tf_static: bool = True) -> int:
     ts = sink.ts
     tf_written: set[str] = set()
     n = 0
     for frame in frames:
         t = int(frame.stamp_ns)
         static = []
-        if frame.camera is not None and frame_ids.camera not in tf_written:
+        if not tf_static:
+            pass
+        elif frame.camera is not None and frame_ids.camera not in tf_written:
             static.append(transform_to_msg(frame.camera.T_base_camera, frame_ids.base, frame_ids.camera, t, ts))
             tf_written.add(frame_ids.camera)
-        if frame.scan is not None and frame_ids.laser not in tf_written:
+        if tf_static and frame.scan is not None and frame_ids.laser not in tf_written:
             static.append(transform_to_msg(frame.scan.T_base_laser, frame_ids.base, frame_ids.laser, t, ts))
             tf_written.add(frame_ids.laser)
         if static:
@@ -880,14 +890,16 @@ def _check_formats(rgb_format: str, depth_format: str) -> None:
 
 
 def write_bag(path, frames: Iterable[SensorFrame], topics: TopicNames = TopicNames(), storage: str = "sqlite3",
-              frame_ids: FrameIds = FrameIds(), rgb_format: str = "raw", depth_format: str = "raw") -> Path:
+              frame_ids: FrameIds = FrameIds(), rgb_format: str = "raw", depth_format: str = "raw",
+              tf_static: bool = True) -> Path:
     """Write frames to a new ROS 2 bag folder (Jazzy typestore); return its path.
 
     Per frame, with the frame's stamp as header and bag time: Odometry (pose + covariance), LaserScan,
     CameraInfo (K, P, D = 0), rgb as Image rgb8 on ``topics.rgb`` or, with ``rgb_format="jpeg"``,
     CompressedImage on ``<rgb>/compressed``; depth as Image 16UC1 (mm) on ``topics.depth`` or, with
     ``depth_format="png"``, compressedDepth on ``<depth>/compressedDepth``. ``/tf_static``
-    (TFMessage) holds base -> camera optical and base -> laser from the first frame carrying each.
+    (TFMessage) holds base -> camera optical and base -> laser from the first frame carrying each
+    (not written with ``tf_static=False``).
 
     Args:
         path: bag folder to create (must not exist).
@@ -906,7 +918,7 @@ def write_bag(path, frames: Iterable[SensorFrame], topics: TopicNames = TopicNam
     ts = typestore()
     with Writer(path, version=Writer.VERSION_LATEST, storage_plugin=plugins[storage]) as writer:
         n = _write_frames(_MessageSink(writer, ts, ts.serialize_cdr, ros1=False), frames, topics, frame_ids,
-                          rgb_format, depth_format)
+                          rgb_format, depth_format, tf_static)
     logger.info("wrote %d frames to %s (%s)", n, path, storage)
     return path
 
