@@ -53,10 +53,11 @@ sqlite3 errors, a full or read-only disk; MemoryError) is logged, the worker sto
 exits with status :data:`EXIT_UNRECOVERABLE`, so a launch file's ``respawn`` restarts the node.
 
 Messages lost in transport (DDS reports gaps in a writer's sequence numbers, the ``message_lost``
-event) are counted per topic in ``messages_lost`` and logged once per topic. With ``qos:=sensor_data``
-(best effort), Fast DDS loses large images under CPU load even between two processes on one
-machine (measured by ``bench/bench_node.py``); ``qos:=reliable`` receives every frame from a
-reliable publisher such as ``rtabmap-ros2 play``.
+event) are counted per topic in ``messages_lost`` and logged once per topic. With best effort
+(``qos:=sensor_data``, or ``auto`` facing a best-effort publisher), Fast DDS loses large images under
+CPU load even between two processes on one machine (measured by ``bench/bench_node.py``); ``auto``
+(the default) subscribes reliably to reliable publishers such as ``rtabmap-ros2 play`` and receives
+every frame.
 
 Shutdown: rclpy (7.1) installs handlers for SIGINT and SIGTERM that stop ``spin``; ``main``'s
 ``finally`` then destroys the node, which joins the worker (finishing the frame in flight) and
