@@ -491,8 +491,6 @@ class RtabmapNode(Node):
                 self._fail(exc)
             else:
                 self._frame_error(frame, exc)
-        except MemoryError as exc:
-            self._fail(exc)
 
     def _frame_error(self, frame: SensorFrame, exc: Exception) -> None:
         """An unexpected error in one frame: counted per kind, logged once per kind with its traceback."""

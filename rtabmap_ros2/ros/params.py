@@ -22,12 +22,16 @@ Parameters are read once at start (``read_only``): the core is built from them.
 from __future__ import annotations
 
 import difflib
+import re
 from pathlib import Path
 from typing import Any
 
 from rcl_interfaces.msg import ParameterDescriptor
 
 from rtabmap_ros2.core.params import RTABMAP_ALIASES, Params, default_config_path
+
+# RTAB-Map's parameter names: Group/Name (rclpy's qos_overrides./topic... parameters are not).
+RTABMAP_NAME = re.compile(r"[A-Za-z][A-Za-z0-9]*/[A-Za-z][A-Za-z0-9_]*")
 
 # ROS name -> dotted field, for the settings declared under rtabmap_ros's names.
 NODE_SYNC_NAMES = {
@@ -79,7 +83,8 @@ def rtabmap_name_overrides(node) -> dict[str, Any]:
     rclpy keeps every override, declared or not, in ``Node._parameter_overrides`` (no public accessor
     lists undeclared ones).
     """
-    return {name: parameter.value for name, parameter in node._parameter_overrides.items() if "/" in name}
+    return {name: parameter.value for name, parameter in node._parameter_overrides.items()
+            if RTABMAP_NAME.fullmatch(name)}
 
 
 def closest_rtabmap_name(name: str) -> str | None:
