@@ -57,8 +57,10 @@ class SensorMounts:
         self._tf2 = tf2
         self.buffer = None
         if tf2 is not None:
+            # The listener's subscriptions sit in a reentrant group of this node, served by the node's
+            # executor while a sensor callback waits in lookup_transform (main() runs 3 threads).
             self.buffer = tf2.Buffer()
-            self._listener = tf2.TransformListener(self.buffer, node, spin_thread=True)
+            self._listener = tf2.TransformListener(self.buffer, node)
 
     @property
     def source(self) -> str:

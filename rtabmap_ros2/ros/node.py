@@ -695,7 +695,8 @@ def main(args: Optional[list[str]] = None) -> None:
     node = None
     try:
         node = RtabmapNode()
-        executor = MultiThreadedExecutor(num_threads=2)
+        # Sensors, services, and tf2's listener (served while a sensor callback waits for a transform).
+        executor = MultiThreadedExecutor(num_threads=3)
         executor.add_node(node)
         executor.spin()
     except KeyboardInterrupt:
