@@ -94,6 +94,7 @@ def test_mounts_as_parameters_give_the_ground_truth(context, tmp_path, recording
     assert with_mounts <= ATE_MAX_M
 
     _, without = _play_into_node(context, tmp_path / "without", bag)
+    print(f"node ATE with the mount parameters {with_mounts:.4f} m, without {without:.4f} m")
     assert without > 3 * with_mounts and without > 2 * ATE_MAX_M, (with_mounts, without)
 
 
@@ -101,11 +102,9 @@ def test_map_takes_the_mounts_for_a_bag_without_tf_static(tmp_path, recording):
     from rtabmap_ros2.cli.cli import main as cli
 
     out, _ = recording
-    mounts = [f"--set=base_to_laser={LASER_MOUNT}", f"--set=base_to_camera={CAMERA_MOUNT}"]
-    errors = {}
-    for name, extra in (("with", mounts), ("without", [])):
-        db = tmp_path / f"{name}.db"
-        assert cli(["map", str(out / "session_1"), "--db", str(db), "--no-progress", *extra]) == 0
-        assert cli(["export", str(db), "--out", str(tmp_path / name)]) == 0
-        errors[name] = ate(read_tum(tmp_path / name / "poses.txt"), read_tum(out / "ground_truth.txt")).rmse_m
-    assert errors["with"] <= ATE_MAX_M and errors["without"] > 3 * errors["with"], errors
+    db = tmp_path / "map.db"
+    assert cli(["map", str(out / "session_1"), "--db", str(db), "--no-progress",
+                f"--set=base_to_laser={LASER_MOUNT}", f"--set=base_to_camera={CAMERA_MOUNT}"]) == 0
+    assert cli(["export", str(db), "--out", str(tmp_path / "export")]) == 0
+    error = ate(read_tum(tmp_path / "export" / "poses.txt"), read_tum(out / "ground_truth.txt")).rmse_m
+    assert error <= ATE_MAX_M   # without them: 0.12 m (README)
