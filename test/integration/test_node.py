@@ -97,14 +97,14 @@ class SensorRig(Node):
         with self.lock:
             return [conv.statistics_from_msg(m) for m in self.received["info"]]
 
-    def publish_frame(self, frame, stamp_ns=None, skip=()):
+    def publish_frame(self, frame, stamp_ns=None, skip=(), encoding="bgr8", depth_m=None):
         stamp = frame.stamp_ns if stamp_ns is None else stamp_ns
         msgs = {
             "camera_info": conv.camera_info_to_msg(frame.camera, stamp, "camera_optical"),
             "odom": conv.odometry_to_msg(frame.T_odom_base, stamp, covariance=frame.odom_covariance),
             "scan": conv.scan_to_msg(frame.scan, stamp, "laser"),
-            "depth": conv.depth_to_msg(frame.depth_m, stamp, "camera_optical"),
-            "rgb": conv.image_to_msg(frame.rgb, stamp, "camera_optical", "bgr8"),
+            "depth": conv.depth_to_msg(frame.depth_m if depth_m is None else depth_m, stamp, "camera_optical"),
+            "rgb": conv.image_to_msg(frame.rgb, stamp, "camera_optical", encoding),
         }
         for name, msg in msgs.items():
             if name not in skip:
@@ -142,10 +142,10 @@ class Harness:
         self.thread.start()
         assert wait_for(self.tester.connected)
 
-    def feed(self, frame, stamp_ns=None) -> dict[str, str]:
+    def feed(self, frame, stamp_ns=None, **publish) -> dict[str, str]:
         """Publish one frame and wait until the node reports it on info."""
         before = self.tester.count("info")
-        self.tester.publish_frame(frame, stamp_ns)
+        self.tester.publish_frame(frame, stamp_ns, **publish)
         assert wait_for(lambda: self.tester.count("info") > before), "no info for a published frame"
         return self.tester.infos()[-1]
 
@@ -559,3 +559,14 @@ def test_unrecoverable_error_ends_the_process_non_zero(ros_env, context, tmp_pat
         tester.destroy_node()
     assert proc.returncode == EXIT_UNRECOVERABLE, out
     assert "unrecoverable error" in out and "disk is full" in out
+
+
+@pytest.mark.parametrize("encoding", ["rgba8", "bgra8", "mono16", "bayer_rggb8", "bayer_grbg16", "yuv422", "yuyv"])
+def test_drivers_encodings_are_mapped(harness, frames, encoding):
+    """Frames whose colour image comes in each encoding drivers publish (and a depth image at half the
+    RGB resolution, registered by scaling) are processed: nodes with visual words."""
+    half_depth = np.ascontiguousarray(frames[1].depth_m[::2, ::2])
+    infos = [harness.feed(frames[0], encoding=encoding), harness.feed(frames[1], encoding=encoding,
+                                                                      depth_m=half_depth)]
+    assert all(int(i["location_id"]) > 0 for i in infos) and int(infos[0]["words_added"]) > 0, infos
+    assert not harness.node.bad_messages and not harness.node.frame_errors
