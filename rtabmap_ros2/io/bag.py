@@ -116,8 +116,6 @@ _BAYER_CHANNELS = {"rggb": ((0, 1), (1, 2)), "bggr": ((2, 1), (1, 0)), "gbrg": (
 _RGB_TO_YUV601 = np.array([[0.257, 0.504, 0.098], [-0.148, -0.291, 0.439], [0.439, -0.368, -0.071]])
 _DEPTH_MM_ENCODINGS = ("16uc1", "mono16")
 _DEPTH_M_ENCODINGS = ("32fc1",)
-# Largest relative difference of aspect ratio between depth and RGB still registered by scaling.
-ASPECT_TOLERANCE = 0.01
 
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
@@ -276,14 +274,16 @@ def _pixels(msg, dtype: np.dtype, channels: int) -> np.ndarray:
     """HxWxC (or HxW) view of an Image's data honouring ``step`` and ``is_bigendian``."""
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     if h <= 0 or w <= 0:
-        raise SensorDataError(f"image {msg.encoding} is empty ({w}x{h})")
+        raise SensorDataError(f"image {msg.encoding} is empty ({w}x{h})", "empty_image")
     dt = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
     row_bytes = w * channels * dt.itemsize
     data = _buffer(msg.data)
-    if step < row_bytes or data.size < step * h:
-        raise SensorDataError(
-            f"image {w}x{h} {msg.encoding} has step {step} and {data.size} bytes: expected at least "
-            f"step {row_bytes} and {row_bytes * h} bytes")
+    if step < row_bytes:
+        raise SensorDataError(f"image {w}x{h} {msg.encoding} has step {step}, smaller than width x pixel size "
+                              f"= {row_bytes} bytes", "bad_step")
+    if data.size < step * h:
+        raise SensorDataError(f"image {w}x{h} {msg.encoding} holds {data.size} bytes, expected step x height = "
+                              f"{step * h} bytes", "short_data")
     raw = data[:step * h].reshape(h, step)
     px = raw[:, :row_bytes].copy().view(dt)
     shape = (h, w) if channels == 1 else (h, w, channels)
@@ -297,11 +297,13 @@ def image_from_msg(msg) -> np.ndarray:
     enc = msg.encoding.lower()
     if enc not in _COLOR_ENCODINGS:
         raise SensorDataError(
-            f"unsupported colour image encoding {msg.encoding!r} (supported: {', '.join(_COLOR_ENCODINGS)})")
+            f"unsupported colour image encoding {msg.encoding!r} (supported: {', '.join(_COLOR_ENCODINGS)})",
+            "encoding")
     channels, dtype, code = _COLOR_ENCODINGS[enc]
     if channels == 2:   # 4:2:2 YUV: 2 bytes per pixel, decoded by cv2 as a 2-channel image
         if int(msg.width) % 2:
-            raise SensorDataError(f"{msg.encoding} image width {msg.width} is odd (4:2:2 needs pairs of pixels)")
+            raise SensorDataError(f"{msg.encoding} image width {msg.width} is odd (4:2:2 needs pairs of pixels)",
+                                  "invalid_image")
         return cv2.cvtColor(_pixels(msg, np.uint8, 2), code)
     px = _pixels(msg, dtype, channels)
     if px.dtype == np.uint16:
@@ -384,10 +386,11 @@ def depth_from_msg(msg) -> np.ndarray:
         d = _pixels(msg, np.float32, 1).copy()
         if np.isinf(d).any():
             raise SensorDataError("depth image contains inf values: the driver should publish NaN or 0 "
-                                  "for invalid pixels")
+                                  "for invalid pixels", "inf_depth")
         d[~(d > 0)] = np.nan
         return d
-    raise SensorDataError(f"unsupported depth image encoding {msg.encoding!r} (supported: 16UC1, mono16, 32FC1)")
+    raise SensorDataError(f"unsupported depth image encoding {msg.encoding!r} (supported: 16UC1, mono16, 32FC1)",
+                          "encoding")
 
 
 def jpeg_of_rgb(rgb: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
@@ -410,7 +413,8 @@ def compressed_image_from_msg(msg) -> np.ndarray:
     """HxWx3 uint8 RGB of a sensor_msgs/CompressedImage (jpeg or png)."""
     bgr = cv2.imdecode(_buffer(msg.data), cv2.IMREAD_COLOR)
     if bgr is None:
-        raise SensorDataError(f"cv2 could not decode the compressed image (format {msg.format!r}, {len(msg.data)} bytes)")
+        raise SensorDataError(f"cv2 could not decode the compressed image (format {msg.format!r}, {len(msg.data)} bytes)",
+                              "decode")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
@@ -444,10 +448,11 @@ def compressed_depth_from_msg(msg) -> np.ndarray:
         _, quant_a, quant_b = COMPRESSED_DEPTH_HEADER.unpack_from(raw)
         png = raw[COMPRESSED_DEPTH_HEADER.size:]
     else:
-        raise SensorDataError(f"compressedDepth message (format {msg.format!r}) holds no PNG")
+        raise SensorDataError(f"compressedDepth message (format {msg.format!r}) holds no PNG", "decode")
     img = cv2.imdecode(np.frombuffer(png, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.dtype != np.uint16 or img.ndim != 2:
-        raise SensorDataError(f"compressedDepth message (format {msg.format!r}) has an unreadable 16-bit PNG")
+        raise SensorDataError(f"compressedDepth message (format {msg.format!r}) has an unreadable 16-bit PNG",
+                              "decode")
     if enc in _DEPTH_MM_ENCODINGS:
         return depth_from_mm(img)
     if enc in _DEPTH_M_ENCODINGS:
@@ -455,7 +460,7 @@ def compressed_depth_from_msg(msg) -> np.ndarray:
             d = (quant_a / (img.astype(np.float32) - quant_b)).astype(np.float32)
         d[(img == 0) | ~np.isfinite(d) | (d <= 0)] = np.nan
         return d
-    raise SensorDataError(f"unsupported compressedDepth encoding {enc!r} in format {msg.format!r}")
+    raise SensorDataError(f"unsupported compressedDepth encoding {enc!r} in format {msg.format!r}", "encoding")
 
 
 def camera_info_to_msg(camera: CameraModel, stamp_ns: int, frame_id: str = "camera_optical", ts=None):
@@ -479,7 +484,9 @@ def camera_info_from_msg(msg, T_base_camera: np.ndarray = DEFAULT_T_BASE_CAMERA)
     K = np.asarray(_field(msg, "k"), dtype=np.float64)
     P = np.asarray(_field(msg, "p"), dtype=np.float64)
     fx, fy, cx, cy = float(K[0]), float(K[4]), float(K[2]), float(K[5])
-    if P.size == 12 and P[0] > 0 and P[5] > 0 and not np.allclose((P[0], P[5], P[2], P[6]), (fx, fy, cx, cy)):
+    calibrated = fx > 0 and fy > 0   # a zero K is an uncalibrated camera: rejected by CameraModel
+    if (calibrated and P.size == 12 and P[0] > 0 and P[5] > 0
+            and not np.allclose((P[0], P[5], P[2], P[6]), (fx, fy, cx, cy))):
         fx, fy, cx, cy = float(P[0]), float(P[5]), float(P[2]), float(P[6])
     return CameraModel(fx, fy, cx, cy, int(msg.width), int(msg.height), np.array(T_base_camera, dtype=np.float64))
 
@@ -487,28 +494,31 @@ def camera_info_from_msg(msg, T_base_camera: np.ndarray = DEFAULT_T_BASE_CAMERA)
 def register_to_rgb(frame: SensorFrame) -> SensorFrame:
     """The frame with depth and camera model at the RGB image's resolution.
 
-    A depth image registered to the RGB camera but at another resolution (e.g. 320x240 with a
-    640x480 colour image) is resized to the RGB size (nearest neighbour: no depth is interpolated
-    across edges), and a camera_info at another resolution has its intrinsics scaled; both must
-    have the RGB image's aspect ratio (else SensorDataError naming the sizes: an unregistered depth
-    cannot be fixed by scaling).
+    A depth image registered to the RGB camera but at another resolution, one an integer multiple of
+    the other (e.g. 320x240 with a 640x480 colour image, as RTAB-Map requires), is resized to the RGB
+    size (nearest neighbour: no depth is interpolated across edges), and a camera_info at such a
+    resolution has its intrinsics scaled. Other sizes raise SensorDataError (reason
+    ``size_mismatch``) naming them: an unregistered depth cannot be fixed by scaling.
     """
     if frame.rgb is None:
         return frame
     h, w = frame.rgb.shape[:2]
 
-    def check_aspect(what: str, width: int, height: int) -> None:
-        if abs((width / height) / (w / h) - 1.0) > ASPECT_TOLERANCE:
-            raise SensorDataError(f"{what} {width}x{height} and rgb {w}x{h} have different aspect ratios: the "
-                                  "depth is not registered to the RGB image (publish a registered depth, e.g. "
-                                  "depth_registered/image_rect)")
+    def check(what: str, source: str, width: int, height: int) -> None:
+        big, small = ((w, h), (width, height)) if w >= width else ((width, height), (w, h))
+        factor = big[0] // small[0] if small[0] else 0
+        if not factor or big != (small[0] * factor, small[1] * factor):
+            raise SensorDataError(
+                f"{what} {width}x{height} and rgb {w}x{h}: sizes differ and neither is an integer multiple of "
+                "the other, so the depth cannot be registered by scaling (publish a depth registered to the RGB "
+                "camera, e.g. depth_registered/image_rect)", "size_mismatch", source)
 
     if frame.depth_m is not None and frame.depth_m.ndim == 2 and frame.depth_m.shape != (h, w):
         dh, dw = frame.depth_m.shape
-        check_aspect("depth", dw, dh)
+        check("depth", "depth", dw, dh)
         frame.depth_m = cv2.resize(frame.depth_m, (w, h), interpolation=cv2.INTER_NEAREST)
     if frame.camera is not None and (frame.camera.width, frame.camera.height) != (w, h):
-        check_aspect("camera_info", frame.camera.width, frame.camera.height)
+        check("camera_info", "camera_info", frame.camera.width, frame.camera.height)
         frame.camera = frame.camera.scaled(w, h)
     return frame
 
@@ -811,7 +821,7 @@ class BagDataset:
                     T = self._sensor_transform(image_frame_id, self._T_base_camera, self._fallback_camera,
                                                base_frame)
                     frame.camera = camera_info_from_msg(info.msg, T)
-            register_to_rgb(frame).validate()
+            register_to_rgb(frame).validate(self.sync)
         except (SensorDataError, ValueError) as exc:
             where = (f"{current.topic} ({current.msgtype}, encoding "
                      f"{getattr(current.msg, 'encoding', getattr(current.msg, 'format', '-'))!r}) "

@@ -78,6 +78,19 @@ def header(stamp_ns: int, frame_id: str) -> Header:
     return Header(stamp=stamp_from_ns(stamp_ns), frame_id=frame_id)
 
 
+def frame_id_from_header(msg: Any) -> str:
+    """The ``header.frame_id`` of a stamped message; SensorDataError when it is empty.
+
+    An empty frame_id names no sensor frame: its mount cannot be looked up (rtabmap_ros drops
+    such messages too, failing the TF look-up).
+    """
+    frame_id = msg.header.frame_id
+    if not frame_id.strip():
+        raise SensorDataError(f"{type(msg).__name__} message has an empty header.frame_id: set the sensor frame",
+                              "empty_frame_id")
+    return frame_id
+
+
 # -- poses -------------------------------------------------------------------------------------
 def pose_to_msg(T: np.ndarray) -> Pose:
     """``geometry_msgs/Pose`` of a 4x4 rigid transform (m)."""
@@ -112,11 +125,12 @@ def transform_from_msg(msg: TransformStamped) -> np.ndarray:
 def _xyz_quat_to_T(xyz, quat_xyzw, what: str) -> np.ndarray:
     values = np.array([*xyz, *quat_xyzw], dtype=np.float64)
     if not np.all(np.isfinite(values)):
-        raise SensorDataError(f"{what} has NaN or inf values {values.tolist()}: check the odometry source")
+        raise SensorDataError(f"{what} has NaN or inf values {values.tolist()}: check the odometry source",
+                              "non_finite_pose")
     try:
         return transforms.from_xyz_quat_xyzw(values[:3], values[3:])
     except ValueError as exc:
-        raise SensorDataError(f"{what} has an invalid quaternion: {exc}") from exc
+        raise SensorDataError(f"{what} has an invalid quaternion: {exc}", "invalid_quaternion") from exc
 
 
 # -- odometry ----------------------------------------------------------------------------------
@@ -129,7 +143,7 @@ def odometry_from_msg(msg: Odometry) -> tuple[np.ndarray, np.ndarray]:
     T = pose_from_msg(msg.pose.pose)
     cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
     if not np.all(np.isfinite(cov)):
-        raise SensorDataError("odometry covariance has NaN or inf values")
+        raise SensorDataError("odometry covariance has NaN or inf values", "non_finite_covariance")
     return T, cov
 
 
@@ -210,7 +224,7 @@ def camera_model_from_msg(msg: CameraInfo, T_base_camera: np.ndarray | None = No
     try:
         return bag.camera_info_from_msg(msg, DEFAULT_T_BASE_CAMERA if T_base_camera is None else T_base_camera)
     except SensorDataError as exc:
-        raise SensorDataError(f"camera_info unusable: {exc}") from exc
+        raise SensorDataError(f"camera_info unusable: {exc}", exc.reason) from exc
 
 
 def camera_info_to_msg(camera: CameraModel, stamp_ns: int, frame_id: str) -> CameraInfo:
@@ -229,15 +243,15 @@ def scan_from_msg(msg: LaserScanMsg, T_base_laser: np.ndarray | None = None) -> 
     """Core LaserScan of a ``sensor_msgs/LaserScan``; SensorDataError if empty or without a return."""
     ranges = np.frombuffer(msg.ranges, dtype=np.float32).astype(np.float32)
     if ranges.size == 0:
-        raise SensorDataError("laser scan is empty (no ranges)")
+        raise SensorDataError("laser scan is empty (no ranges)", "empty_scan")
     if not np.isfinite(ranges).any():
-        raise SensorDataError(f"laser scan has no finite range ({ranges.size} beams, all NaN/inf)")
+        raise SensorDataError(f"laser scan has no finite range ({ranges.size} beams, all NaN/inf)", "no_valid_scan")
     scan = LaserScan(ranges=ranges, angle_min=float(msg.angle_min), angle_increment=float(msg.angle_increment),
                      range_min=float(msg.range_min), range_max=float(msg.range_max),
                      **({} if T_base_laser is None else {"T_base_laser": T_base_laser}))
     if not scan.valid_mask().any():
         raise SensorDataError(
-            f"laser scan has no range inside [{scan.range_min}, {scan.range_max}) m")
+            f"laser scan has no range inside [{scan.range_min}, {scan.range_max}) m", "no_valid_scan")
     return scan
 
 

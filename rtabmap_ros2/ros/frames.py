@@ -98,7 +98,7 @@ class SensorMounts:
             raise SensorDataError(
                 f"no transform {self.base_frame} -> {frame_id} within {self.wait_s:g} s "
                 f"({type(exc).__name__}: {exc}): publish it (robot_state_publisher, static_transform_publisher) "
-                f"or set base_to_{sensor}") from exc
+                f"or set base_to_{sensor}", "no_transform") from exc
         return conv.transform_from_msg(tf)
 
 

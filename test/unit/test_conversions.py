@@ -346,7 +346,7 @@ def test_depth_at_half_resolution_is_registered_by_scaling():
     assert frame.depth_m.shape == (480, 640) and frame.depth_m[101, 201] == depth[50, 100]   # nearest
     assert (frame.camera.fx, frame.camera.cx, frame.camera.width) == (525.0, 319.5, 640)
     # Another aspect ratio is not a registered depth: rejected, naming both sizes.
-    with pytest.raises(SensorDataError, match="200x240 and rgb 640x480"):
+    with pytest.raises(SensorDataError, match="200x240 and rgb 640x480: sizes differ"):
         register_to_rgb(SensorFrame(stamp_ns=1, rgb=rgb, depth_m=depth[:, :200].copy(), camera=half))
 
 
@@ -362,3 +362,43 @@ def test_mounts_from_parameters_without_tf2():
     np.testing.assert_allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)   # laser x = base y
     # The default camera mount is the optical frame at the base origin looking forward.
     np.testing.assert_allclose(mounts.T_base(CAMERA, "camera_optical", 0), conv.DEFAULT_T_BASE_CAMERA, atol=1e-12)
+
+
+# -- reasons of rejected messages (the node logs once and counts per (topic, reason)) ---------------
+def _reason(convert, msg) -> str:
+    with pytest.raises(SensorDataError) as info:
+        convert(msg)
+    return info.value.reason
+
+
+def test_rejections_name_their_reason(rgb):
+    image = conv.image_to_msg(rgb, 0, "c")
+    image.encoding = "yuv444"
+    assert _reason(conv.image_from_msg, image) == "encoding"
+    image = conv.image_to_msg(rgb, 0, "c")
+    image.data = bytes(image.data)[:-1]
+    assert _reason(conv.image_from_msg, image) == "short_data"
+    image = conv.image_to_msg(rgb, 0, "c")
+    image.step = 4
+    assert _reason(conv.image_from_msg, image) == "bad_step"
+    depth = conv.depth_to_msg(np.full(rgb.shape[:2], np.inf, np.float32), 0, "c", "32FC1")
+    assert _reason(conv.depth_from_msg, depth) == "inf_depth"
+    odom = Odometry()
+    odom.pose.pose.orientation.w = 0.0
+    assert _reason(conv.odometry_from_msg, odom) == "invalid_quaternion"
+    odom.pose.pose.position.x = math.nan
+    assert _reason(conv.odometry_from_msg, odom) == "non_finite_pose"
+    camera = CameraModel(500.0, 500.0, 10.0, 10.0, 20, 20)
+    info = conv.camera_info_to_msg(camera, 0, "c")
+    info.k = np.zeros(9)
+    assert _reason(conv.camera_model_from_msg, info) == "invalid_intrinsics"
+    scan = conv.scan_to_msg(LaserScan(np.ones(10, np.float32), 0.0, 0.1, 0.1, 10.0), 0, "laser")
+    scan.ranges = [math.nan] * 10
+    assert _reason(conv.scan_from_msg, scan) == "no_valid_scan"
+
+
+def test_frame_id_from_header():
+    scan = conv.scan_to_msg(LaserScan(np.ones(10, np.float32), 0.0, 0.1, 0.1, 10.0), 0, "laser")
+    assert conv.frame_id_from_header(scan) == "laser"
+    scan.header.frame_id = " "
+    assert _reason(conv.frame_id_from_header, scan) == "empty_frame_id"
