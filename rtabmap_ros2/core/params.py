@@ -16,6 +16,7 @@ Unknown names raise :class:`~rtabmap_ros2.errors.ParameterError`; YAML is read w
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -24,6 +25,11 @@ from typing import Any, Iterator, Mapping
 import yaml
 
 from rtabmap_ros2.errors import ParameterError
+
+
+HALF_PI = math.pi / 2
+NODE_QOS = ("auto", "reliable", "sensor_data")
+NODE_IMAGE_TRANSPORTS = ("auto", "raw", "compressed")
 
 
 def _p(default: Any, doc: str, unit: str = "") -> Any:
@@ -304,12 +310,39 @@ class NodeParams:
     subscribe_rgb: bool = _p(True, "Subscribe to rgb/image and rgb/camera_info")
     subscribe_depth: bool = _p(True, "Subscribe to depth/image")
     subscribe_scan: bool = _p(True, "Subscribe to scan")
-    qos: str = _p("sensor_data", "QoS of the subscriptions: sensor_data (best effort) or reliable")
+    qos: str = _p("auto", "QoS of the subscriptions: auto (per topic, reliable when every publisher is reliable, "
+                          "else best effort; re-checked when publishers appear), reliable or sensor_data "
+                          "(best effort)")
+    image_transport: str = _p("auto", "Images: auto (whichever of rgb/image or rgb/image/compressed, depth/image "
+                                      "or depth/image/compressedDepth is published), raw or compressed")
     topic_timeout_s: float = _p(5.0, "Warn once when an expected topic has been silent this long", "s")
+    base_to_laser: tuple = _p((0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+                              "Laser mount [x, y, z, roll, pitch, yaw] in frame_id, used without tf2 (pip "
+                              "install) or when set", "m, rad")
+    base_to_camera: tuple = _p((0.0, 0.0, 0.0, -HALF_PI, 0.0, -HALF_PI),
+                               "Mount of the RGB image's optical frame [x, y, z, roll, pitch, yaw] in frame_id "
+                               "(default: at the base origin, optical z forward), used without tf2 or when set",
+                               "m, rad")
+    wait_for_transform: float = _p(0.2, "With tf2: longest wait for frame_id -> a message's header.frame_id", "s")
+    publish_tf: bool = _p(True, "With tf2: broadcast map_frame_id -> odom_frame_id")
+    tf_publish_rate: float = _p(20.0, "Rate of the map -> odom broadcast (also while paused)", "Hz")
+    tf_delay: float = _p(0.05, "The map -> odom transform is stamped now + tf_delay", "s")
+    localization: bool = _p(False, "Start in localization mode (RTAB-Map: Mem/IncrementalMemory false)")
+    service_timeout_s: float = _p(10.0, "Longest wait of a service for the worker (busy with a frame or a "
+                                        "command) before it answers with an error", "s")
 
     def __post_init__(self) -> None:
-        _check(self.qos in ("sensor_data", "reliable"), "qos", self.qos, "sensor_data or reliable")
+        _check(self.qos in NODE_QOS, "qos", self.qos, " or ".join(NODE_QOS))
+        _check(self.image_transport in NODE_IMAGE_TRANSPORTS, "image_transport", self.image_transport,
+               " or ".join(NODE_IMAGE_TRANSPORTS))
         _check(self.topic_timeout_s > 0, "topic_timeout_s", self.topic_timeout_s, "> 0")
+        for name in ("base_to_laser", "base_to_camera"):
+            value = getattr(self, name)
+            _check(len(value) == 6 and all(math.isfinite(v) for v in value), name, value,
+                   "6 finite numbers [x, y, z, roll, pitch, yaw]")
+        _check(self.wait_for_transform >= 0, "wait_for_transform", self.wait_for_transform, ">= 0")
+        _check(self.tf_publish_rate > 0, "tf_publish_rate", self.tf_publish_rate, "> 0 (publish_tf turns it off)")
+        _check(self.service_timeout_s > 0, "service_timeout_s", self.service_timeout_s, "> 0")
 
 
 @dataclass(frozen=True)
@@ -401,6 +434,7 @@ class Params:
 
 # RTAB-Map's parameter names -> (dotted name, conversion from RTAB-Map's unit to ours).
 RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
+    "Mem/IncrementalMemory": ("node.localization", lambda v: not _to_bool("Mem/IncrementalMemory", v)),
     "Mem/STMSize": ("memory.stm_size", int),
     "Mem/RehearsalSimilarity": ("memory.rehearsal_similarity", float),
     "Mem/RecentWmRatio": ("memory.recent_wm_ratio", float),
