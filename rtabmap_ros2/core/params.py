@@ -218,11 +218,22 @@ class GraphParams:
         "is held until a second one, between places at least this far from the first on both maps, "
         "agrees on the maps' alignment: perceptual aliasing (look-alike posters, symmetric corridors) "
         "repeats over a few metres, a true overlap does not end there (0 = merge on the first)", "m")
-    odom_reset_distance: float = _p(
-        0.05, "A new map starts when odometry jumps back within this distance of the origin after "
-        "moving away from it (odometry reset)", "m")
-    odom_reset_min_travel: float = _p(
-        0.5, "Odometry reset detection: the previous pose must be at least this far from the origin", "m")
+    odom_reset_jump: float = _p(
+        1.0, "Odometry reset detection: a new map starts when odometry moves between two frames by more "
+        "than this plus a plausible speed x the time between them (the first frames after a reset were "
+        "lost, so the first one received is already away from the origin), or by more than this across "
+        "a silence longer than odom_reset_max_gap. RTAB-Map's RGBD/NewMapOdomChangeDistance, which has "
+        "no speed term; 0 = off (a reset is then seen only by an identity pose or a covariance of 9999, "
+        "as in RTAB-Map by default)", "m")
+    odom_reset_speed: float = _p(
+        1.0, "Odometry reset detection: speed the robot is assumed able to reach however slowly it moved so "
+        "far. The plausible speed across a gap is the larger of this and twice the fastest speed seen "
+        "over the last 20 frames, so a fast robot is judged by its own speed (raise it when the robot "
+        "can speed up much while frames are lost)", "m/s")
+    odom_reset_max_gap: float = _p(
+        60.0, "Odometry reset detection: across a silence longer than this (no frame; or a stamp going "
+        "back, a bag replayed) odometry is not trusted to bridge more than odom_reset_jump: a robot "
+        "that moved meanwhile starts a new map, joined again by loop closures", "s")
     odom_default_variance: float = _p(
         1e-3, "Variance of neighbour links when odometry has no covariance", "m^2, rad^2")
     loop_closure_variance: float = _p(1e-3, "Variance of loop closure links (before robust scaling)",
@@ -235,7 +246,9 @@ class GraphParams:
                "in (0, 1)")
         _check(self.optimize_max_error >= 0, "graph.optimize_max_error", self.optimize_max_error, ">= 0")
         _check(self.merge_min_separation >= 0, "graph.merge_min_separation", self.merge_min_separation, ">= 0")
-        _check(self.odom_reset_distance > 0, "graph.odom_reset_distance", self.odom_reset_distance, "> 0")
+        _check(self.odom_reset_jump >= 0, "graph.odom_reset_jump", self.odom_reset_jump, ">= 0")
+        _check(self.odom_reset_speed >= 0, "graph.odom_reset_speed", self.odom_reset_speed, ">= 0")
+        _check(self.odom_reset_max_gap > 0, "graph.odom_reset_max_gap", self.odom_reset_max_gap, "> 0")
         _check(self.odom_default_variance > 0, "graph.odom_default_variance", self.odom_default_variance, "> 0")
         _check(self.loop_closure_variance > 0, "graph.loop_closure_variance", self.loop_closure_variance, "> 0")
 
@@ -445,6 +458,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Optimizer/Iterations": ("graph.iterations", int),
     "Optimizer/Robust": ("graph.robust", lambda v: _to_bool("Optimizer/Robust", v)),
     "RGBD/OptimizeMaxError": ("graph.optimize_max_error", float),
+    "RGBD/NewMapOdomChangeDistance": ("graph.odom_reset_jump", float),
     "Grid/CellSize": ("grid.resolution", float),
     "Grid/RangeMax": ("grid.range_max", float),
     "Rtabmap/DetectionRate": ("sync.rate_hz", float),

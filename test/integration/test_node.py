@@ -301,6 +301,24 @@ def test_pause_resume_trigger_new_map_and_reset(harness, frames):
     assert len(t.last("mapPath").poses) == 1
 
 
+def test_an_odometry_reset_with_its_first_frames_lost_starts_a_new_map(harness, frames):
+    # A second recording played two minutes after the first: its odometry restarted at frame 8
+    # (identity there), but frames 8 and 9 never arrived; the first one received is 1 m away
+    # from the new origin. The core sees the reset (a move across a silence), not the node.
+    from dataclasses import replace
+
+    from rtabmap_ros2.sim.robot import reset_odometry
+
+    first = [harness.feed(f) for f in frames[:6]]
+    restarted = reset_odometry(np.stack([f.T_odom_base for f in frames]), 8)
+    later = 120 * 10**9
+    second = [harness.feed(replace(f, T_odom_base=restarted[i], stamp_ns=f.stamp_ns + later))
+              for i, f in enumerate(frames[10:13], start=10)]
+    assert {int(i["map_id"]) for i in first} == {0}
+    assert [int(i["map_id"]) for i in second] == [1, 1, 1]
+    assert [i["new_map"] for i in second] == ["true", "false", "false"]
+
+
 def test_localization_mode_adds_no_node(harness, frames):
     t = harness.tester
     for f in frames[:5]:
