@@ -5,7 +5,9 @@ multi-session trial, with one memory (one :class:`~rtabmap_ros2.core.rtabmap.Rta
 database) kept between them. A new map (session) starts with every bag and whenever odometry
 is reset inside a bag. Prints a progress bar, one line per session (nodes, WM size, intra /
 inter-session loop closures, max pTime) and a final line; writes the parameters used to
-``params.yaml`` next to the database. Frames with bad sensor data are skipped with a warning.
+``params.yaml`` next to the database. Sensor mounts come from each bag's ``/tf_static``; for a bag
+without it, ``--set base_to_laser=[x,y,z,roll,pitch,yaw]`` and ``--set base_to_camera=[...]`` (the
+camera's optical frame) give them. Frames with bad sensor data are skipped with a warning.
 """
 
 from __future__ import annotations
@@ -125,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from rtabmap_ros2.core.rtabmap import Rtabmap
+    from rtabmap_ros2.core.transforms import from_xyz_rpy
     from rtabmap_ros2.errors import BagError
     from rtabmap_ros2.io.bag import BagDataset
     from rtabmap_ros2.cli.common_args import params_from_args
@@ -133,7 +136,10 @@ def run(args: argparse.Namespace) -> int:
     db_path = Path(args.db).expanduser()
     if not db_path.parent.is_dir():
         raise BagError(f"--db {db_path}: folder {db_path.parent} does not exist")
-    datasets = [(Path(b).name, BagDataset(b, sync=params.sync)) for b in args.bags]
+    # Sensor mounts: the bag's /tf_static; where it has none, --set base_to_laser / base_to_camera.
+    mounts = {"fallback_T_base_laser": from_xyz_rpy(params.node.base_to_laser),
+              "fallback_T_base_camera": from_xyz_rpy(params.node.base_to_camera)}
+    datasets = [(Path(b).name, BagDataset(b, sync=params.sync, **mounts)) for b in args.bags]
     t0 = time.perf_counter()
     with Rtabmap(params, db_path, delete_existing=args.overwrite) as rtabmap:
         sessions = map_datasets(rtabmap, datasets, progress=not args.no_progress)
