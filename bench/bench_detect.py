@@ -16,6 +16,16 @@ max pTime <= 0.93 s. Our pTime is far below the paper's, so small T_time values 
 are included for transfer and retrieval to act.
 
     python bench/bench_detect.py [--quick] [--n 3000] [--time-thresholds 0.7 0 0.1 0.05 0.02]
+
+Issue 12 modes (T_time 0.7 s, one sequence per seed of ``--seeds``, default 7 11 13):
+
+* ``--ablation``: precision / recall at the default T_loop and recall at 100 % precision of the
+  issue-12 changes, each alone on top of the old defaults and all together (the new defaults),
+  per seed and averaged (-> ``results/detect_ablation.json``). Features are extracted once per
+  image and cached beside the sequence (``features.npz``): pTime excludes them anyway.
+* ``--reference``: the reference implementation (RTAB-Map 0.22.1 C++, ``../shared/reference``,
+  when it is there) on the same images, side by side with our defaults: precision, recall, recall
+  at 100 % precision, median and max time per image (-> ``results/detect_reference.json``).
 """
 
 from __future__ import annotations
@@ -35,6 +45,23 @@ RESULTS = REPO / "bench" / "results"
 DEFAULT_DATA = Path("/tmp/rtabmap_ros2_bench_detect")
 FULL_IMAGES, QUICK_IMAGES = 3000, 500
 SEED = 7
+SEEDS = (7, 11, 13)
+REFERENCE = REPO.parent / "shared" / "reference"
+# Issue 12 ablation: (label, --set overrides). "old defaults" are the defaults before issue 12
+# (the NNDR test d1 <= T_NNDR * d2 is in every run); each change alone on top of them, then all
+# together = the new defaults (an empty override list).
+OLD_DEFAULTS = ("Kp/TfIdfLikelihoodUsed=false", "Kp/NewWordsComparedTogether=false",
+                "Mem/RehearsalSimilarity=0.2", "Rtabmap/LoopRatio=0", "Bayes/VirtualPlacePriorThr=0.9")
+ABLATION = (
+    ("old defaults", OLD_DEFAULTS),
+    ("+ tf-idf likelihood", OLD_DEFAULTS + ("Kp/TfIdfLikelihoodUsed=true",)),
+    ("+ new words compared together", OLD_DEFAULTS + ("Kp/NewWordsComparedTogether=true",)),
+    ("+ rehearsal similarity 0.6", OLD_DEFAULTS + ("Mem/RehearsalSimilarity=0.6",)),
+    ("+ loop ratio 0.9", OLD_DEFAULTS + ("Rtabmap/LoopRatio=0.9",)),
+    ("+ virtual place prior 0.95", OLD_DEFAULTS + ("Bayes/VirtualPlacePriorThr=0.95",)),
+    ("all but virtual place prior", ("Bayes/VirtualPlacePriorThr=0.9",)),
+    ("new defaults (all)", ()),
+)
 REVISIT_RATIO = 0.35
 DEFAULT_T_TIME_S = (0.7, 0.0, 0.5, 0.3, 0.1, 0.05, 0.03, 0.02)
 QUICK_T_TIME_S = (0.7, 0.0, 0.05, 0.02)
@@ -51,21 +78,54 @@ def rss_mb() -> float:
     return float("nan")
 
 
-def ensure_sequence(n: int, data: Path) -> Path:
+def ensure_sequence(n: int, data: Path, seed: int = SEED) -> Path:
     """Write the sequence once (``<data>/seq_<n>_<seed>/1.jpg...``, ground truth beside it)."""
     from rtabmap_ros2.sim.sequence import make_sequence, write_sequence
 
-    folder = data / f"seq_{n}_{SEED}"
+    folder = data / f"seq_{n}_{seed}"
     done = folder / "COMPLETE"
     if not done.exists():
         t0 = time.perf_counter()
         print(f"writing {n} images to {folder} ...", flush=True)
-        write_sequence(make_sequence(n, seed=SEED, revisit_ratio=REVISIT_RATIO), folder)
+        write_sequence(make_sequence(n, seed=seed, revisit_ratio=REVISIT_RATIO), folder)
         done.write_text(f"{time.perf_counter() - t0:.1f} s\n")
     return folder
 
 
-def run_one(folder: Path, n: int, t_time_s: float) -> dict:
+class _CachedFeatures:
+    """The default extractor's features of the sequence's images, extracted once and kept in
+    ``<folder>/features.npz`` (the ablation runs the same images many times; pTime excludes
+    feature extraction, so the figures are those of ``detect``)."""
+
+    def __init__(self, folder: Path, n: int, extractor) -> None:
+        from rtabmap_ros2.core.features import Features
+        from rtabmap_ros2.io.datasets import read_rgb
+
+        path = folder / "features.npz"
+        if not path.exists():
+            parts = [extractor.extract(read_rgb(folder / f"{k}.jpg")) for k in range(1, n + 1)]
+            counts = np.array([len(f.keypoints) for f in parts])
+            tmp = folder / "features.tmp.npz"
+            np.savez(tmp, counts=counts, keypoints=np.concatenate([f.keypoints for f in parts]),
+                     descriptors=np.concatenate([f.descriptors for f in parts]),
+                     responses=np.concatenate([f.responses for f in parts]))
+            tmp.rename(path)
+        with np.load(path) as data:
+            counts, keypoints, descriptors, responses = (data[k] for k in ("counts", "keypoints", "descriptors",
+                                                                            "responses"))
+        bounds = np.r_[0, np.cumsum(counts)]
+        self.features = [Features(keypoints[a:b].copy(), descriptors[a:b].copy(), responses[a:b].copy())
+                         for a, b in zip(bounds[:-1], bounds[1:])]
+        self.next = 0
+
+    def extract(self, image) -> object:
+        features = self.features[self.next]
+        self.next += 1
+        return features
+
+
+def run_one(folder: Path, n: int, t_time_s: float, overrides: tuple[str, ...] = (),
+            cached_features: bool = False) -> dict:
     """One detect-equivalent run (in this process); returns its summary."""
     import logging
 
@@ -77,14 +137,16 @@ def run_one(folder: Path, n: int, t_time_s: float) -> dict:
     from rtabmap_ros2.io.evaluation import evaluate_rows, load_ground_truth
 
     rss_start = rss_mb()
-    params = Params().with_value("memory.time_threshold_ms", t_time_s * 1000.0)
+    params = Params().with_overrides(list(overrides)).with_value("memory.time_threshold_ms", t_time_s * 1000.0)
     gt = load_ground_truth(folder / "ground_truth.png", n)
-    db = folder.parent / f"bench_{t_time_s:g}.db"
+    db = folder.parent / f"bench_{folder.name}_{t_time_s:g}_{os.getpid()}.db"
     rows = []
     t0 = time.perf_counter()
     with Rtabmap(params, db, delete_existing=True) as rtabmap:
+        if cached_features:
+            rtabmap.extractor = _CachedFeatures(folder, n, rtabmap.extractor)
         for k in range(1, n + 1):
-            rgb = read_rgb(folder / f"{k}.jpg")
+            rgb = read_rgb(folder / f"{k}.jpg")  # stored with the location, as by detect
             s = rtabmap.process(SensorFrame(stamp_ns=k * 10**9, rgb=rgb), location_id=k)
             rows.append(dict(location_id=s.location_id, loop_closure_id=s.loop_closure_id,
                              highest_hypothesis_id=s.highest_hypothesis_id,
@@ -94,7 +156,8 @@ def run_one(folder: Path, n: int, t_time_s: float) -> dict:
                              retrieved=s.retrieved, transferred=s.transferred, timings_ms=dict(s.timings_ms)))
     wall = time.perf_counter() - t0
     rss_end = rss_mb()
-    db.unlink(missing_ok=True)
+    for suffix in ("", "-wal", "-shm"):
+        Path(f"{db}{suffix}").unlink(missing_ok=True)
     ptime = np.array([r["process_time_ms"] for r in rows if r["location_id"]])
     spikes = sorted(range(n), key=lambda i: -rows[i]["process_time_ms"])[:TOP_SPIKES]
     ev = evaluate_rows(gt, rows)
@@ -181,6 +244,157 @@ def write_report(results: list[dict], n: int, gt_positives: int | None, args: ar
     return path
 
 
+def single(folder: Path, n: int, t_time_s: float, overrides: tuple[str, ...] = (), cached: bool = False) -> dict:
+    """``run_one`` in a subprocess of its own (its own resident memory, no state shared)."""
+    command = [sys.executable, __file__, "--n", str(n), "--data", str(folder.parent),
+               "--seeds", folder.name.rsplit("_", 1)[1], "--single", str(t_time_s)]
+    command += [f"--set={o}" for o in overrides] + (["--cached-features"] if cached else [])
+    out = subprocess.run(command, capture_output=True, text=True, check=False)
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} failed:\n{out.stderr[-3000:]}")
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    result["load_avg_after"] = os.getloadavg()
+    return result
+
+
+def _summary(ev: dict) -> dict:
+    o = ev["origin"]
+    return {"precision": o["precision"], "recall": o["recall"], "recall_at_100_precision": o["recall_at_100_precision"],
+            "accepted": o["accepted"], "positives": o["positives"]}
+
+
+def ablation(n: int, args: argparse.Namespace) -> int:
+    """Issue 12: each change alone on the old defaults and all together, on every seed (T_time 0.7 s)."""
+    folders = [ensure_sequence(n, args.data, seed) for seed in args.seeds]
+    configs = [c for c in ABLATION if not args.configs or any(k in c[0] for k in args.configs)]
+    runs = []
+    # The new and old defaults first: the rest of the table explains their difference.
+    order = sorted(configs, key=lambda c: (c[0] not in ("new defaults (all)", "old defaults"), configs.index(c)))
+    jobs = [(label, overrides, folder) for label, overrides in order for folder in folders]
+    from concurrent.futures import ThreadPoolExecutor
+
+    def work(job):
+        label, overrides, folder = job
+        # Each run's result is kept beside the images: an interrupted ablation resumes where it stopped.
+        key = "_".join(o.replace("/", "-").replace("=", "-") for o in overrides) or "defaults"
+        done = folder / f"ablation_{key}.json"
+        if done.exists() and not args.rerun:
+            r = json.loads(done.read_text())
+        elif args.report_only:
+            return None
+        else:
+            t0 = time.perf_counter()
+            r = single(folder, n, 0.7, overrides, cached=True)
+            done.write_text(json.dumps(r))
+            print(f"{label} / {folder.name}: {time.perf_counter() - t0:.0f} s", flush=True)
+        return {"config": label, "overrides": list(overrides), "seed": int(folder.name.rsplit('_', 1)[1]),
+                **_summary(r["evaluation"]), "ptime_median_ms": r["ptime_median_ms"], "ptime_max_ms": r["ptime_max_ms"],
+                "max_wm_size": r["max_wm_size"], "merged": r["merged"], "load_avg_after": r["load_avg_after"]}
+
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        runs = [r for r in pool.map(work, jobs) if r is not None]
+    configs = [c for c in configs if any(r["config"] == c[0] for r in runs)]
+    runs.sort(key=lambda r: ([c[0] for c in configs].index(r["config"]), r["seed"]))
+    head = (f"{'configuration':32} {'seed':>5} {'prec %':>6} {'rec %':>6} {'R@100P %':>8} {'med pT ms':>9} "
+            f"{'maxWM':>6} {'merged':>6}")
+    lines = [f"{n} images per seed, T_time 0.7 s, T_loop 0.11 (origin policy)", head, "-" * len(head)]
+    for label, _ in configs:
+        mine = [r for r in runs if r["config"] == label]
+        for r in mine + [None]:
+            row = r or {k: float(np.mean([m[k] for m in mine])) for k in
+                        ("precision", "recall", "recall_at_100_precision", "ptime_median_ms", "max_wm_size", "merged")}
+            lines.append(f"{label if r is None else '':32} {('mean' if r is None else r['seed']):>5} "
+                         f"{100 * row['precision']:6.1f} {100 * row['recall']:6.1f} "
+                         f"{100 * row['recall_at_100_precision']:8.1f} {row['ptime_median_ms']:9.1f} "
+                         f"{row['max_wm_size']:6.0f} {row['merged']:6.0f}")
+    print("\n".join(lines))
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / ("detect_ablation.json" if n == FULL_IMAGES else f"detect_ablation_{n}.json")
+    path.write_text(json.dumps({"images": n, "seeds": list(args.seeds), "t_time_s": 0.7, "cpu_count": os.cpu_count(),
+                                "load_avg": os.getloadavg(), "table": lines, "runs": runs}, indent=1))
+    print(f"-> {path}")
+    return 0
+
+
+def _reference_runnable(reference: Path, scratch: Path) -> Path:
+    """The reference's folder, or a copy in ``scratch`` whose library symlinks are repaired (a copy
+    of the folder that turned its symlinks into text files naming their target)."""
+    lib = reference / "lib"
+    broken = [f for f in lib.iterdir() if f.is_file() and f.stat().st_size < 256 and not f.is_symlink()]
+    if not broken:
+        return reference
+    import shutil
+
+    copy = scratch / "reference"
+    if not (copy / "rtabmap-reference").exists():
+        shutil.copytree(reference, copy, symlinks=True, dirs_exist_ok=True)
+        for f in broken:
+            target = (copy / "lib" / f.name)
+            name = f.read_text().strip()
+            target.chmod(0o644)
+            target.unlink()
+            target.symlink_to(name)
+    return copy
+
+
+def reference_side_by_side(n: int, args: argparse.Namespace) -> int:
+    """Issue 12: the reference (RTAB-Map C++) and our defaults on the same images, per seed."""
+    import csv
+
+    from rtabmap_ros2.io.evaluation import evaluate_rows, load_ground_truth
+
+    if not (args.reference_dir / "rtabmap-reference").exists():
+        print(f"no reference at {args.reference_dir}: nothing to compare with", file=sys.stderr)
+        return 1
+    scratch = args.data / "reference"
+    scratch.mkdir(parents=True, exist_ok=True)
+    runner = _reference_runnable(args.reference_dir, scratch) / "rtabmap-reference"
+    out = []
+    for seed in args.seeds:
+        folder = ensure_sequence(n, args.data, seed)
+        # Images only: the reference would take ground_truth.png for image N+1.
+        images = scratch / f"images_{n}_{seed}"
+        images.mkdir(exist_ok=True)
+        for k in range(1, n + 1):
+            link = images / f"{k}.jpg"
+            if not link.exists():
+                link.symlink_to(folder / f"{k}.jpg")
+        result_dir = scratch / f"out_{n}_{seed}"
+        csv_path = result_dir / "detections.csv"
+        if not csv_path.exists() or args.rerun_reference:
+            t0 = time.perf_counter()
+            subprocess.run([str(runner), str(images), str(result_dir)], check=True)
+            print(f"reference / seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
+        rows = []
+        for r in list(csv.DictReader(open(csv_path)))[:n]:
+            rows.append({"location_id": int(r["location_id"]), "loop_closure_id": int(r["loop_closure_id"]),
+                         "highest_hypothesis_id": int(r["highest_hypothesis_id"]),
+                         "highest_hypothesis_value": float(r["highest_hypothesis_value"]),
+                         "process_time_ms": float(r["process_time_ms"]),
+                         # The reference keeps the older id when rehearsal merges: no origin chain.
+                         "merged_id": 0})
+        gt = load_ground_truth(folder / "ground_truth.png", n)
+        times = np.array([r["process_time_ms"] for r in rows])
+        ref = {"seed": seed, "implementation": "RTAB-Map 0.22.1 C++", **_summary(evaluate_rows(gt, rows)),
+               "ptime_median_ms": float(np.median(times)), "ptime_max_ms": float(times.max())}
+        mine = single(folder, n, 0.7)
+        ours = {"seed": seed, "implementation": "rtabmap_ros2", **_summary(mine["evaluation"]),
+                "ptime_median_ms": mine["ptime_median_ms"], "ptime_max_ms": mine["ptime_max_ms"]}
+        out += [ref, ours]
+    head = f"{'implementation':22} {'seed':>5} {'prec %':>6} {'rec %':>6} {'R@100P %':>8} {'med ms':>7} {'max ms':>8}"
+    lines = [f"{n} images per seed, defaults, T_time 0.7 s, T_loop 0.11 (the reference prints hypothesis values "
+             "with 2 decimals: its R@100P is coarse)", head, "-" * len(head)]
+    for r in out:
+        lines.append(f"{r['implementation']:22} {r['seed']:>5} {100 * r['precision']:6.1f} {100 * r['recall']:6.1f} "
+                     f"{100 * r['recall_at_100_precision']:8.1f} {r['ptime_median_ms']:7.1f} {r['ptime_max_ms']:8.1f}")
+    print("\n".join(lines))
+    path = RESULTS / ("detect_reference.json" if n == FULL_IMAGES else f"detect_reference_{n}.json")
+    path.write_text(json.dumps({"images": n, "seeds": list(args.seeds), "load_avg": os.getloadavg(),
+                                "table": lines, "runs": out}, indent=1))
+    print(f"-> {path}")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help=f"{QUICK_IMAGES} images, fewer T_time values")
@@ -190,25 +404,48 @@ def main() -> int:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="where the images are cached")
     parser.add_argument("--append", action="store_true",
                         help="keep the runs of other T_time values already in the results JSON (same images)")
+    parser.add_argument("--ablation", action="store_true", help="issue 12's ablation table over --seeds")
+    parser.add_argument("--configs", nargs="+", default=None, metavar="WORD",
+                        help="--ablation: only the configurations whose label contains one of these")
+    parser.add_argument("--reference", action="store_true",
+                        help="run the reference (RTAB-Map C++) on the same sequences, side by side with ours")
+    parser.add_argument("--reference-dir", type=Path, default=REFERENCE, help=f"default {REFERENCE}")
+    parser.add_argument("--rerun-reference", action="store_true", help="do not reuse its detections.csv")
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS), help="sequences (--ablation, --reference)")
+    parser.add_argument("--jobs", type=int, default=2, help="--ablation: runs at a time")
+    parser.add_argument("--parallel-sweep", action="store_true",
+                        help="T_time sweep: --jobs runs at a time (faster, timings less comparable)")
+    parser.add_argument("--report-only", action="store_true",
+                        help="--ablation: table of the runs kept beside the images, running none")
+    parser.add_argument("--rerun", action="store_true", help="--ablation: do not reuse the runs kept beside the images")
     parser.add_argument("--single", type=float, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
+    parser.add_argument("--cached-features", action="store_true",
+                        help="T_time sweep: features extracted once per image (features.npz beside the images)")
     args = parser.parse_args()
     n = args.n or (QUICK_IMAGES if args.quick else FULL_IMAGES)
-    folder = ensure_sequence(n, args.data)
     if args.single is not None:
-        print(json.dumps(run_one(folder, n, args.single)))
+        folder = ensure_sequence(n, args.data, args.seeds[0])
+        print(json.dumps(run_one(folder, n, args.single, tuple(args.set), args.cached_features)))
         return 0
+    if args.ablation:
+        return ablation(n, args)
+    if args.reference:
+        return reference_side_by_side(n, args)
+    folder = ensure_sequence(n, args.data)
     thresholds = args.time_thresholds or (QUICK_T_TIME_S if args.quick else DEFAULT_T_TIME_S)
     gt_positives = None
     results = previous_runs(n, args, thresholds) if args.append else []
-    for t in thresholds:
-        t0 = time.perf_counter()
-        out = subprocess.run([sys.executable, __file__, "--n", str(n), "--data", str(args.data), "--single", str(t)],
-                             capture_output=True, text=True, check=False)
-        if out.returncode != 0:
-            print(out.stderr[-3000:], file=sys.stderr)
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max_workers=args.jobs if args.parallel_sweep else 1)
+    pending = [(t, time.perf_counter(), pool.submit(single, folder, n, t, (), args.cached_features)) for t in thresholds]
+    for t, t0, future in pending:
+        try:
+            result = future.result()
+        except RuntimeError as exc:
+            print(exc, file=sys.stderr)
             return 1
-        result = json.loads(out.stdout.strip().splitlines()[-1])
-        result["load_avg_after"] = os.getloadavg()
         results.append(result)
         gt_positives = result["evaluation"]["origin"]["positives"]
         print(f"T_time {t:g} s done in {time.perf_counter() - t0:.0f} s", flush=True)

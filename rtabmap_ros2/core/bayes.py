@@ -198,7 +198,13 @@ class BayesFilter:
         p_new = self.posterior.get(NEW_LOCATION, 1.0)
         return Hypothesis(best_id, 1.0 - p_new if best_id else 0.0, p_new)
 
-    def accepted(self, hypothesis: Hypothesis) -> bool:
-        """A loop closure when the hypothesis reaches T_loop and is not the only one in WM."""
-        return (hypothesis.location_id > 0 and len(self.posterior) > 2
-                and hypothesis.probability >= self.params.loop_threshold)
+    def accepted(self, hypothesis: Hypothesis, previous_value: float = 0.0) -> bool:
+        """A loop closure when the hypothesis reaches T_loop and is not the only one in WM, and,
+        with ``loop_ratio`` > 0 (RTAB-Map's Rtabmap/LoopRatio), when the previous frame's
+        hypothesis value ``previous_value`` was not 0 and this one is at least ``loop_ratio``
+        times it (Rtabmap.cpp, hypothesis validation): a lone spike is not a loop closure."""
+        if not (hypothesis.location_id > 0 and len(self.posterior) > 2
+                and hypothesis.probability >= self.params.loop_threshold):
+            return False
+        ratio = self.params.loop_ratio
+        return ratio <= 0.0 or (previous_value > 0.0 and hypothesis.probability >= ratio * previous_value)

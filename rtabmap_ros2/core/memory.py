@@ -136,6 +136,12 @@ class Memory:
     def rehearse(self, sig: Signature, new_word_ids: Iterable[int]) -> int:
         """Merge the previous STM location into ``sig`` when Eq. 1 reaches T_similarity.
 
+        SLAM mode (odometry): when the neighbour link between them shows the camera moved
+        (``memory.rehearsal_max_distance`` / ``rehearsal_max_angle``), both locations are kept and
+        only the weight moves to ``sig`` (or nothing happens with
+        ``rehearsal_weight_ignored_while_moving``), as RTAB-Map's Memory::rehearsalMerge: merging
+        a moving camera's locations would drop places the map needs.
+
         Returns the id of the merged (deleted) location, or 0.
         """
         if sig.bad or len(self.stm) < 2:
@@ -143,7 +149,16 @@ class Memory:
         prev = self.signatures[self.stm[-2]]
         if prev.bad or prev.map_id != sig.map_id:
             return 0
-        if similarity(sig.word_counts(), prev.word_counts()) < self.params.memory.rehearsal_similarity:
+        params = self.params.memory
+        if similarity(sig.word_counts(), prev.word_counts()) < params.rehearsal_similarity:
+            return 0
+        # The neighbour link prev -> sig as stored: refined by scan matching when it was.
+        neighbor = self.graph.link(prev.id, sig.id)
+        if sig.T_odom_base is not None and neighbor is not None and self._moved(neighbor.T_from_to):
+            if not params.rehearsal_weight_ignored_while_moving:
+                sig.weight += prev.weight + 1
+                prev.weight = 0
+                self._batch.weights[prev.id] = 0
             return 0
         # z_t is cleared and z_c copied into it; the words L_t had just added leave the vocabulary.
         self.vocabulary.remove_references(sig.id, sig.word_ids)
@@ -153,8 +168,12 @@ class Memory:
             for w in fresh:
                 self._batch.words.pop(w, None)
             self.words_added -= len(fresh)
+        # sig -> prev from the stored neighbour link (scan-refined when it was), not raw odometry:
+        # prev's links are re-anchored on sig through it (issue 14 item 5).
         T_t_c = transforms.identity()
-        if sig.T_odom_base is not None and prev.T_odom_base is not None:
+        if neighbor is not None:
+            T_t_c = transforms.inverse(neighbor.T_from_to)
+        elif sig.T_odom_base is not None and prev.T_odom_base is not None:
             T_t_c = transforms.relative(sig.T_odom_base, prev.T_odom_base)
         sig.word_ids = prev.word_ids
         sig.keypoints = prev.keypoints
@@ -170,7 +189,10 @@ class Memory:
                 continue
             kind = (LinkType.NEIGHBOR if link.type is LinkType.NEIGHBOR
                     else loop_type(sig.map_id, self.map_ids[link.to_id]))
-            self.add_link(Link(sig.id, link.to_id, kind, T_t_c @ link.T_from_to, link.information))
+            information = link.information
+            if neighbor is not None:
+                information = _composed_information(neighbor.information, link.information)
+            self.add_link(Link(sig.id, link.to_id, kind, T_t_c @ link.T_from_to, information))
         self.stm.remove(prev.id)
         del self.signatures[prev.id]
         del self.map_ids[prev.id]
@@ -179,6 +201,12 @@ class Memory:
         if self.last_loop_closure_id == prev.id:
             self.last_loop_closure_id = sig.id
         return prev.id
+
+    def _moved(self, T: np.ndarray) -> bool:
+        """True when a neighbour link shows the camera moved (RTAB-Map's rehearsal isMoving)."""
+        params = self.params.memory
+        return bool(np.abs(T[:3, 3]).max() > params.rehearsal_max_distance
+                    or transforms.rotation_angle(T) > params.rehearsal_max_angle)
 
     # -- STM -> WM ------------------------------------------------------------------------------
     def update_stm(self) -> None:
@@ -199,12 +227,23 @@ class Memory:
         return np.asarray(sorted(ids), dtype=np.int64)
 
     def similarities(self, sig: Signature, candidates: np.ndarray) -> dict[int, float]:
-        """Eq. 1 between ``sig`` and every candidate (0 for those sharing no word)."""
+        """Raw score of every candidate (0 for those sharing no word), ``bayes.likelihood``'s:
+
+        * ``eq1``: Eq. 1, matched word pairs over the size of the larger signature;
+        * ``tf_idf``: RTAB-Map's Memory::computeLikelihood with Kp/TfIdfLikelihoodUsed,
+          ``sum over the distinct words w of sig of n_wj log10(N / n_w) / n_j``: n_wj occurrences
+          of w in location j, n_j words of j, n_w locations in memory (STM, WM and this one)
+          holding w, N locations in memory. A word seen everywhere weighs nothing.
+        """
         counts = sig.word_counts()
-        n_t = len(sig.word_ids)
-        pairs = self.vocabulary.scores(counts, set(candidates.tolist()))
+        wanted = set(candidates.tolist())
         out = dict.fromkeys(candidates.tolist(), 0.0)
-        for loc, n_pair in pairs.items():
+        if self.params.bayes.likelihood == "tf_idf":
+            for loc, score in self.vocabulary.tf_idf_scores(counts, wanted, len(self.signatures)).items():
+                out[loc] = score / max(len(self.signatures[loc].word_ids), 1)
+            return out
+        n_t = len(sig.word_ids)
+        for loc, n_pair in self.vocabulary.scores(counts, wanted).items():
             out[loc] = n_pair / max(n_t, len(self.signatures[loc].word_ids))
         return out
 
@@ -364,6 +403,11 @@ class Memory:
         self.writer.join()
         self.vocabulary.close()
         self.db.close()
+
+
+def _composed_information(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Information of two links chained: their covariances add (RTAB-Map's Link::merge)."""
+    return np.linalg.inv(np.linalg.inv(a) + np.linalg.inv(b))
 
 
 def _transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:

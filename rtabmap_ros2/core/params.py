@@ -79,7 +79,10 @@ class FeatureParams:
 class VocabularyParams:
     """Incremental visual vocabulary (2013 §III-A): 2-NN quantisation with the NNDR test."""
 
-    nndr: float = _p(0.8, "T_NNDR: a descriptor matches its nearest word if d1 < T_NNDR * d2", "ratio")
+    nndr: float = _p(0.8, "T_NNDR: a descriptor matches its nearest word if d1 <= T_NNDR * d2", "ratio")
+    new_words_compared_together: bool = _p(
+        True, "Compare a frame's new words with each other too, in order (RTAB-Map's "
+        "Kp/NewWordsComparedTogether): a feature repeated in one image gives one word")
     index: str = _p(
         "auto",
         "Nearest-neighbour index: flat (exact brute force), ivf (inverted file, incremental add/"
@@ -93,12 +96,19 @@ class VocabularyParams:
     ivf_retrain_growth: float = _p(
         4.0, "IVF: retrain the coarse quantiser when the vocabulary grew by this factor since the "
         "last training", "ratio")
+    ivf_swap_frames: int = _p(
+        300, "IVF: a background (re)build is swapped in this many frames (quantize calls) after it "
+        "started, waiting for it then if needed: the same images give the same words whatever the load. "
+        "Builds take up to ~6 s at 200k words on one thread (bench/bench_vocabulary.py); with 50 frames "
+        "the 3,000-image runs waited for them (max pTime 7-12 s on a loaded machine); meanwhile the "
+        "exact flat index serves", "frames")
 
     def __post_init__(self) -> None:
         _check(0.0 < self.nndr <= 1.0, "vocabulary.nndr", self.nndr, "in (0, 1]")
         _check(self.index in ("auto", "flat", "ivf"), "vocabulary.index", self.index, "auto, flat or ivf")
         _check(self.ivf_min_words >= 1000, "vocabulary.ivf_min_words", self.ivf_min_words, ">= 1000")
         _check(self.ivf_nprobe >= 1, "vocabulary.ivf_nprobe", self.ivf_nprobe, ">= 1")
+        _check(self.ivf_swap_frames >= 1, "vocabulary.ivf_swap_frames", self.ivf_swap_frames, ">= 1")
         _check(self.ivf_retrain_growth > 1.0, "vocabulary.ivf_retrain_growth", self.ivf_retrain_growth, "> 1")
 
 
@@ -108,8 +118,20 @@ class MemoryParams:
 
     stm_size: int = _p(30, "T_STM: number of locations in Short-Term Memory", "locations")
     rehearsal_similarity: float = _p(
-        0.20, "T_similarity: merge the new location with the previous one if Eq. 1 is above this", "ratio"
+        0.60, "T_similarity: merge the new location with the previous one if Eq. 1 is above this "
+        "(RTAB-Map's default; the paper's 0.20 merged a moving camera's overlapping views: 2,352 of "
+        "3,000 images, and detection precision fell, bench/bench_detect.py --ablation)", "ratio"
     )
+    rehearsal_max_distance: float = _p(
+        0.05, "SLAM mode: the camera moved when its neighbour link is longer than this along an axis; "
+        "a moving camera's locations are not merged by rehearsal (RTAB-Map's Mem/RehearsalMaxDistance)", "m")
+    rehearsal_max_angle: float = _p(
+        0.1, "SLAM mode: the camera moved when its neighbour link turns more than this "
+        "(RTAB-Map's Mem/RehearsalMaxAngle)", "rad")
+    rehearsal_weight_ignored_while_moving: bool = _p(
+        False, "SLAM mode, camera moving: similar consecutive locations are both kept and the older one's "
+        "weight goes to the newer (False), or nothing happens (True; RTAB-Map's "
+        "Mem/RehearsalWeightIgnoredWhileMoving)")
     recent_wm_ratio: float = _p(
         0.20, "T_recent: part of WM after the last loop closure that is protected from transfer", "ratio"
     )
@@ -128,6 +150,9 @@ class MemoryParams:
         _check(self.stm_size >= 1, "memory.stm_size", self.stm_size, ">= 1")
         _check(0.0 <= self.rehearsal_similarity <= 1.0, "memory.rehearsal_similarity",
                self.rehearsal_similarity, "in [0, 1]")
+        _check(self.rehearsal_max_distance >= 0.0, "memory.rehearsal_max_distance", self.rehearsal_max_distance,
+               ">= 0")
+        _check(self.rehearsal_max_angle >= 0.0, "memory.rehearsal_max_angle", self.rehearsal_max_angle, ">= 0")
         _check(0.0 <= self.recent_wm_ratio <= 1.0, "memory.recent_wm_ratio", self.recent_wm_ratio, "in [0, 1]")
         _check(0.0 <= self.bad_signature_ratio <= 1.0, "memory.bad_signature_ratio",
                self.bad_signature_ratio, "in [0, 1]")
@@ -144,8 +169,20 @@ class BayesParams:
         "this (RTAB-Map's implementation of §III-D; 2014: H = 0.11)", "probability")
     sigma: float = _p(1.6, "Std. deviation of the discretised Gaussian of the transition model", "locations")
     neighborhood: int = _p(16, "Neighbours (graph hops) reached by the transition model", "locations")
-    virtual_place_prior: float = _p(0.9, "p(S_t=-1 | S_t-1=-1), the new-location persistence", "probability")
+    virtual_place_prior: float = _p(
+        0.95, "p(S_t=-1 | S_t-1=-1), the new-location persistence (RTAB-Map's Bayes/VirtualPlacePriorThr; "
+        "paper and RTAB-Map: 0.9). With 0.9 the filter's resting value of 1 - p(S_t=-1) on a new place is "
+        "~0.13 when the new-location likelihood mu/sigma + 1 is ~1.75, as on perceptually aliased "
+        "sequences, above T_loop: 0.95 brings it to ~0.06 (bench/bench_detect.py --ablation)", "probability")
     loop_closure_prior: float = _p(0.9, "Sum of p(S_t>=0 | S_t-1=j) over the neighbourhood of j", "probability")
+    likelihood: str = _p(
+        "tf_idf", "Raw score of a WM location before Eq. 3-4: tf_idf (RTAB-Map's Kp/TfIdfLikelihoodUsed: "
+        "sum over the frame's words of n_wj log10(N / n_w) / n_j, over the inverted index) or eq1 "
+        "(the paper's Eq. 1 similarity)")
+    loop_ratio: float = _p(
+        0.9, "RTAB-Map's Rtabmap/LoopRatio: reject a hypothesis below this ratio of the previous "
+        "frame's hypothesis value, or when the previous value was 0 (0 = off, RTAB-Map's default; its "
+        "2013 code used 0.9, as here: bench/bench_detect.py --ablation)", "ratio")
 
     def __post_init__(self) -> None:
         _check(0.0 <= self.loop_threshold <= 1.0, "bayes.loop_threshold", self.loop_threshold, "in [0, 1]")
@@ -155,6 +192,8 @@ class BayesParams:
                "in (0, 1)")
         _check(0.0 < self.loop_closure_prior < 1.0, "bayes.loop_closure_prior", self.loop_closure_prior,
                "in (0, 1)")
+        _check(self.likelihood in ("tf_idf", "eq1"), "bayes.likelihood", self.likelihood, "tf_idf or eq1")
+        _check(0.0 <= self.loop_ratio <= 1.0, "bayes.loop_ratio", self.loop_ratio, "in [0, 1]")
 
 
 @dataclass(frozen=True)
@@ -438,11 +477,21 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Mem/STMSize": ("memory.stm_size", int),
     "Mem/RehearsalSimilarity": ("memory.rehearsal_similarity", float),
     "Mem/RecentWmRatio": ("memory.recent_wm_ratio", float),
+    "Mem/RehearsalMaxDistance": ("memory.rehearsal_max_distance", float),
+    "Mem/RehearsalMaxAngle": ("memory.rehearsal_max_angle", float),
+    "Mem/RehearsalWeightIgnoredWhileMoving": ("memory.rehearsal_weight_ignored_while_moving",
+                                              lambda v: _to_bool("Mem/RehearsalWeightIgnoredWhileMoving", v)),
     "Kp/BadSignRatio": ("memory.bad_signature_ratio", float),
     "Rtabmap/TimeThr": ("memory.time_threshold_ms", float),
     "Rtabmap/MaxRetrieved": ("memory.max_retrieved", int),
     "Rtabmap/LoopThr": ("bayes.loop_threshold", float),
+    "Bayes/VirtualPlacePriorThr": ("bayes.virtual_place_prior", float),
     "Kp/NndrRatio": ("vocabulary.nndr", float),
+    "Kp/NewWordsComparedTogether": ("vocabulary.new_words_compared_together",
+                                    lambda v: _to_bool("Kp/NewWordsComparedTogether", v)),
+    "Kp/TfIdfLikelihoodUsed": ("bayes.likelihood",
+                               lambda v: "tf_idf" if _to_bool("Kp/TfIdfLikelihoodUsed", v) else "eq1"),
+    "Rtabmap/LoopRatio": ("bayes.loop_ratio", float),
     "Kp/MaxFeatures": ("features.max_features", int),
     "Kp/DetectorStrategy": ("features.detector", lambda v: _DETECTOR_STRATEGIES.get(int(v), str(v))),
     "Kp/RoiRatios": ("features.roi_ratios", lambda v: tuple(float(x) for x in str(v).split())),

@@ -142,6 +142,8 @@ class Rtabmap:
         self.frame_index = self.db.max_frame_index() + 1
         self.localization_mode = False
         self.localization_pose: Optional[np.ndarray] = None
+        # The previous frame's highest hypothesis value (Rtabmap/LoopRatio), 0 after a frame without one.
+        self._previous_hypothesis_value = 0.0
         self._optimized: dict[int, np.ndarray] = {}
         self._local_links: list[Link] = []
         self._T_map_odom = transforms.identity()
@@ -198,6 +200,7 @@ class Rtabmap:
             hypothesis = self._localize(frame, features, stats, watch)
         else:
             hypothesis = self._map(frame, features, stats, watch, location_id)
+        self._previous_hypothesis_value = hypothesis.probability
         # Alg. 1 line 17: join the thread writing the previous frame to LTM (counts in pTime).
         self.memory.join()
         watch.lap("database")
@@ -448,7 +451,7 @@ class Rtabmap:
         stats.highest_hypothesis_id = hypothesis.location_id
         stats.highest_hypothesis_value = hypothesis.probability
         watch.lap("bayes")
-        if self.bayes.accepted(hypothesis):
+        if self.bayes.accepted(hypothesis, self._previous_hypothesis_value):
             old = memory.signatures[hypothesis.location_id]
             try:
                 link = self._verify(sig, old)
@@ -621,7 +624,7 @@ class Rtabmap:
         stats.highest_hypothesis_id = hypothesis.location_id
         stats.highest_hypothesis_value = hypothesis.probability
         watch.lap("bayes")
-        if self.bayes.accepted(hypothesis) and frame.T_odom_base is not None:
+        if self.bayes.accepted(hypothesis, self._previous_hypothesis_value) and frame.T_odom_base is not None:
             old = memory.signatures[hypothesis.location_id]
             try:
                 link = self._verify(sig, old)

@@ -2,7 +2,10 @@
 
 Each word is one feature descriptor. A new image's descriptors are quantised by a 2-nearest-
 neighbour search over the current words and the nearest neighbour distance ratio (NNDR) test:
-a descriptor is the nearest word if ``d1 < T_NNDR * d2``; otherwise it becomes a new word.
+a descriptor is the nearest word if ``d1 <= T_NNDR * d2`` (RTAB-Map's form: an exact duplicate,
+d1 = d2 = 0, matches); otherwise it becomes a new word. A frame's new words are compared together
+(``new_words_compared_together``, RTAB-Map's Kp/NewWordsComparedTogether): a feature repeated in
+one image gives one word.
 
 The paper rebuilt FLANN kd-trees over the whole vocabulary at every frame, its most expensive
 step. Here the index is incremental (``bench/bench_vocabulary.py`` measured the choice):
@@ -23,8 +26,11 @@ words (a snapshot: ~1 ms for 80 k ORB words); a daemon thread trains the quantis
 the snapshot and adds all its words to a private new index (faiss releases the GIL; the thread
 uses ``BUILD_THREADS`` OpenMP threads so the frame loop keeps a core). Meanwhile the current index
 (flat, or the previous IVF) keeps serving queries and receiving adds/removes, which are also
-logged. The first call after the build finished replays the log into the new index (O(changes
-since the snapshot)) and swaps it in. Only the main thread calls the public methods; the thread
+logged. The swap point is deterministic (the same images give the same words whatever the load):
+the ``ivf_swap_frames``-th :meth:`quantize` call (frame) after the build started replays the log
+into the new index (O(changes since the snapshot)) and swaps it in, waiting for the thread if it
+has not finished by then (issue 12: a swap at the first call after the thread finished made
+``detections.csv`` depend on the machine's load). Only the main thread calls the public methods; the thread
 touches nothing but its snapshot and its result. ``background_training=False`` builds in the
 calling frame (deterministic tests, benchmarks of the build itself); both modes end with the same
 index content once the swap happened. :meth:`join_training` waits for a pending build and swaps it
@@ -112,6 +118,33 @@ def _as_ids(word_ids: Iterable[int] | np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(word_ids, dtype=np.int64).reshape(-1))
 
 
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+# Nearest rows searched per descriptor to find its nearest other row of the frame (itself, exact
+# duplicates and one more): a row is "affected" when any other row is nearer than its second word.
+_WITHIN_FRAME_K = 3
+
+
+def _nearest_other(descriptors: np.ndarray, binary: bool) -> np.ndarray:
+    """(N,) distance of every row to its nearest *other* row of the same array (inf when alone)."""
+    n = descriptors.shape[0]
+    k = min(n, _WITHIN_FRAME_K)
+    with _omp_threads(SEARCH_THREADS):
+        if binary:
+            distances, rows = faiss.knn_hamming(descriptors, descriptors, k)
+        else:
+            distances, rows = faiss.knn(descriptors, descriptors, k)
+    distances = distances.astype(np.float64) if binary else np.sqrt(np.maximum(distances, 0.0))
+    others = rows != np.arange(n)[:, None]
+    return np.where(others, distances, np.inf).min(axis=1)
+
+
+def _distances_to(descriptors: np.ndarray, i: int, rows: list[int], binary: bool) -> np.ndarray:
+    """Distances from row i to the given rows: Hamming bits (uint8) or L2 (float)."""
+    if binary:
+        return _POPCOUNT[np.bitwise_xor(descriptors[rows], descriptors[i])].sum(axis=1, dtype=np.int64).astype(float)
+    return np.linalg.norm(descriptors[rows] - descriptors[i], axis=1)
+
+
 def _ivf_lists(n_words: int) -> int:
     """Number of IVF lists for a vocabulary of n_words (``IVF_LISTS_PER_SQRT`` sqrt(n))."""
     return max(1, min(int(round(IVF_LISTS_PER_SQRT * math.sqrt(n_words))), n_words // IVF_MIN_POINTS_PER_LIST))
@@ -161,6 +194,7 @@ class _IvfBuild:
 
     size: int
     n_lists: int
+    swap_frame: int = 0  # the quantize call (Vocabulary._frames) at which it is swapped in
     done: threading.Event = field(default_factory=threading.Event)
     log: list = field(default_factory=list)
     thread: threading.Thread | None = None
@@ -214,6 +248,7 @@ class Vocabulary:
         self._ivf_trained_size = 0
         self.background_training = bool(background_training)
         self._build: _IvfBuild | None = None  # pending background (re)build
+        self._frames = 0  # quantize calls so far: the clock of the IVF swap
         # Inverted index: word id -> {location id: occurrences of the word in the location}.
         self._references: dict[int, dict[int, int]] = {}
 
@@ -238,8 +273,13 @@ class Vocabulary:
     def quantize(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Quantise an image's descriptors (Alg. 2 line 5); unmatched ones become new words.
 
-        Matching uses the words present before the call: two descriptors of the same image never
-        match each other.
+        With ``new_words_compared_together`` (RTAB-Map's Kp/NewWordsComparedTogether, default),
+        the descriptors are taken in order and each is compared with the vocabulary *and* with
+        the new words this image created before it: the two nearest of both go to the NNDR test,
+        so a feature seen twice in one image gives one word (twice), not two words. Without it,
+        matching uses the words present before the call only.
+
+        Each call is one frame for the IVF swap (see :meth:`_poll_build`).
 
         Args:
             descriptors: (N,D) uint8 (binary) or float32 (float) descriptors.
@@ -249,17 +289,69 @@ class Vocabulary:
             new word was created.
         """
         descriptors = self._check_descriptors(descriptors)
+        self._frames += 1
         self._poll_build()
-        word_ids = self.match(descriptors)
-        is_new = word_ids < 0
+        if self.params.new_words_compared_together:
+            word_ids, is_new = self._match_with_new_words(descriptors)
+        else:
+            word_ids = self.match(descriptors)
+            is_new = word_ids < 0
+            word_ids[is_new] = np.arange(self.next_word_id, self.next_word_id + int(is_new.sum()), dtype=np.int64)
         n_new = int(is_new.sum())
         if n_new:
             # New words (§III-A): "a new word is created with the feature's descriptor".
-            new_ids = np.arange(self.next_word_id, self.next_word_id + n_new, dtype=np.int64)
-            word_ids[is_new] = new_ids
             self.next_word_id += n_new
-            self._insert(new_ids, descriptors[is_new])
+            self._insert(word_ids[is_new], descriptors[is_new])
         return word_ids, is_new
+
+    def _match_with_new_words(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Word ids and new-word flags when a frame's new words are compared together
+        (RTAB-Map VWDictionary::addNewWords): per descriptor, in order, the two nearest among the
+        vocabulary's 2-NN and this frame's earlier new words pass the NNDR test or a new word is
+        made (ids from ``next_word_id`` on, not inserted yet)."""
+        n = descriptors.shape[0]
+        word_ids = np.full(n, -1, np.int64)
+        is_new = np.zeros(n, bool)
+        if n == 0:
+            return word_ids, is_new
+        if self._count:
+            distances, neighbours = self._search(descriptors)
+            distances = self._distances(distances)
+        else:
+            distances = np.full((n, NEAREST_NEIGHBOURS), np.inf, np.float32)
+            neighbours = np.full((n, NEAREST_NEIGHBOURS), -1, np.int64)
+        distances = np.where(neighbours >= 0, distances, np.inf)
+        nndr = self.params.nndr
+        # Only a descriptor with another one of the frame nearer than its second vocabulary
+        # neighbour can be changed by the frame's new words; the others keep the vocabulary's answer.
+        affected = (_nearest_other(descriptors, self.binary) < distances[:, 1]).tolist()
+        new_rows: list[int] = []  # descriptors that made a new word, in order
+        next_id = self.next_word_id
+        for i in range(n):
+            d1, d2 = float(distances[i, 0]), float(distances[i, 1])
+            best = int(neighbours[i, 0])
+            if new_rows and affected[i]:
+                own = _distances_to(descriptors, i, new_rows, self.binary)
+                for k in np.argsort(own, kind="stable")[:NEAREST_NEIGHBOURS].tolist():
+                    d = float(own[k])
+                    if d < d1:
+                        d1, d2, best = d, d1, int(word_ids[new_rows[k]])
+                    elif d < d2:
+                        d2 = d
+            # NNDR (§III-A) as RTAB-Map: d1 <= T_NNDR * d2 (an exact duplicate, d1 = d2 = 0,
+            # matches); fewer than two candidates: a new word.
+            if best >= 0 and np.isfinite(d2) and d1 <= nndr * d2:
+                word_ids[i] = best
+            else:
+                word_ids[i] = next_id
+                next_id += 1
+                is_new[i] = True
+                new_rows.append(i)
+        return word_ids, is_new
+
+    def _distances(self, distances: np.ndarray) -> np.ndarray:
+        """faiss distances as distances: Hamming bits, or L2 (faiss returns it squared)."""
+        return distances if self.binary else np.sqrt(np.maximum(distances, 0.0))
 
     def match(self, descriptors: np.ndarray) -> np.ndarray:
         """Nearest word of each descriptor passing the NNDR test, or -1; adds nothing.
@@ -277,12 +369,11 @@ class Vocabulary:
         if n == 0 or self._count < NEAREST_NEIGHBOURS:
             return result
         distances, neighbours = self._search(descriptors)
-        if not self.binary:
-            # faiss L2 distances are squared: NNDR compares distances.
-            distances = np.sqrt(np.maximum(distances, 0.0))
-        # NNDR (§III-A): d1 < T_NNDR * d2; a missing second neighbour (IVF) fails the test.
+        distances = self._distances(distances)
+        # NNDR (§III-A), RTAB-Map's form d1 <= T_NNDR * d2: an exact duplicate of two words
+        # (d1 = d2 = 0) matches instead of making a third. A missing second neighbour (IVF) fails.
         found = (neighbours[:, 0] >= 0) & (neighbours[:, 1] >= 0)
-        accepted = found & (distances[:, 0] < self.params.nndr * distances[:, 1])
+        accepted = found & (distances[:, 0] <= self.params.nndr * distances[:, 1])
         result[accepted] = neighbours[accepted, 0]
         return result
 
@@ -433,6 +524,29 @@ class Vocabulary:
                         pairs[location] += n if n < count else count
         return dict(pairs)
 
+    def tf_idf_scores(self, word_counts: dict[int, int], candidates: set[int], n_locations: int) -> dict[int, float]:
+        """Sum over the query's distinct words w of ``n_wj log10(N / n_w)`` for every candidate j
+        holding a word (RTAB-Map's tf-idf likelihood, before the division by n_j).
+
+        Args:
+            word_counts: word id -> occurrences in the query signature (only the keys are used).
+            candidates: the location ids to score.
+            n_locations: N, the locations in memory (every location the inverted index holds).
+        """
+        out: defaultdict[int, float] = defaultdict(float)
+        references = self._references
+        for word in word_counts:
+            locations = references.get(word)
+            if not locations:
+                continue
+            idf = math.log10(n_locations / len(locations)) if n_locations > len(locations) else 0.0
+            if idf <= 0.0:
+                continue
+            for location, n in locations.items():
+                if location in candidates:
+                    out[location] += n * idf
+        return dict(out)
+
     # -------------------------------------------------------------- internals
     def _check_descriptors(self, descriptors: np.ndarray) -> np.ndarray:
         """Validated contiguous (N,D) descriptors of the vocabulary's dtype."""
@@ -497,11 +611,12 @@ class Vocabulary:
         # The snapshot is private to the build: the main thread keeps moving rows of the buffer.
         words = self._descriptors[: self._count].copy()
         ids = self._ids[: self._count].copy()
-        build = _IvfBuild(size=self._count, n_lists=_ivf_lists(self._count))
+        build = _IvfBuild(size=self._count, n_lists=_ivf_lists(self._count),
+                          swap_frame=self._frames + self.params.ivf_swap_frames)
         self._build = build
         if not self.background_training:
             build.run(words, ids, self.binary, self.params.ivf_nprobe)
-            self._poll_build()
+            self._poll_build(wait=True)
             return
         build.thread = threading.Thread(target=build.run, args=(words, ids, self.binary, self.params.ivf_nprobe),
                                         name="vocabulary-ivf-build", daemon=True)
@@ -510,9 +625,10 @@ class Vocabulary:
                     build.size, build.n_lists)
 
     def _poll_build(self, wait: bool = False) -> None:
-        """Swap in the finished background build (main thread): replay the logged changes first."""
+        """Swap in the background build at its swap frame, or now with ``wait`` (main thread):
+        wait for it, then replay the logged changes."""
         build = self._build
-        if build is None or not (wait or build.done.is_set()):
+        if build is None or not (wait or self._frames >= build.swap_frame):
             return
         if build.thread is not None:
             build.thread.join()

@@ -38,7 +38,7 @@ def test_likelihood_without_any_shared_word_favours_nothing():
 
 
 def test_prediction_from_new_location_uses_the_0_9_0_1_transitions():
-    bayes = BayesFilter(BayesParams(), chain([1, 2, 3, 4, 5]))
+    bayes = BayesFilter(BayesParams(virtual_place_prior=0.9), chain([1, 2, 3, 4, 5]))  # the paper's value
     belief = bayes.predict(np.array([1, 2, 3, 4, 5]))
     assert belief[0] == pytest.approx(0.9)  # p(S_t=-1 | S_t-1=-1)
     np.testing.assert_allclose(belief[1:], 0.1 / 5)  # the rest spread uniformly over WM
@@ -47,7 +47,7 @@ def test_prediction_from_new_location_uses_the_0_9_0_1_transitions():
 
 def test_prediction_from_a_location_keeps_mass_and_peaks_on_it():
     ids = np.arange(1, 41)
-    bayes = BayesFilter(BayesParams(), chain(ids.tolist()))
+    bayes = BayesFilter(BayesParams(virtual_place_prior=0.9), chain(ids.tolist()))
     bayes.posterior = {NEW_LOCATION: 0.2, 20: 0.5, 30: 0.3}
     belief = bayes.predict(ids)
     assert belief.sum() == pytest.approx(1.0)
@@ -90,8 +90,8 @@ def test_repeated_strong_observation_drives_the_posterior_up_until_accepted():
         values.append(hypothesis.probability)
         assert hypothesis.location_id == 12
     assert all(b > a for a, b in zip(values, values[1:]))
-    assert not bayes.accepted(type(hypothesis)(12, 0.05, 0.95))  # below T_loop
-    assert bayes.accepted(bayes.highest())
+    assert not bayes.accepted(type(hypothesis)(12, 0.05, 0.95), values[-2])  # below T_loop
+    assert bayes.accepted(bayes.highest(), values[-2])
     assert sum(bayes.posterior.values()) == pytest.approx(1.0)
 
 
@@ -102,6 +102,24 @@ def test_uniform_observations_keep_the_new_location_hypothesis():
         bayes.update(ids, likelihood({int(i): 0.05 for i in ids}))
     assert bayes.posterior[NEW_LOCATION] > 0.5
     assert not bayes.accepted(bayes.highest())
+
+
+def test_loop_ratio_rejects_a_falling_or_lone_hypothesis():
+    """Rtabmap/LoopRatio (0.9): the value must reach 0.9 x the previous frame's, which must not be 0."""
+    ids = np.arange(1, 31)
+    bayes = BayesFilter(BayesParams(loop_ratio=0.9), chain(ids.tolist()))
+    scores = {int(i): 0.05 for i in ids}
+    scores[12] = 0.6
+    for _ in range(5):
+        bayes.update(ids, likelihood(scores))
+    best = bayes.highest()
+    assert best.probability >= 0.11
+    assert bayes.accepted(best, best.probability / 0.9)
+    assert not bayes.accepted(best, best.probability / 0.85)  # fell by more than 10 %
+    assert not bayes.accepted(best, 0.0)  # the previous frame had no hypothesis
+    off = BayesFilter(BayesParams(loop_ratio=0.0), chain(ids.tolist()))
+    off.posterior = dict(bayes.posterior)
+    assert off.accepted(best, 0.0) and off.accepted(best, 1.0)
 
 
 def test_single_hypothesis_is_never_accepted():

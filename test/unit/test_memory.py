@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from rtabmap_ros2.core.database import Database
-from rtabmap_ros2.core.graph import Link, LinkType
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.graph import Link, LinkType, default_information
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.signature import Signature
@@ -183,3 +184,58 @@ def test_loop_closure_undone_in_its_own_frame_is_not_written(tmp_path, descripto
     assert (3, 1) in stored
     assert (4, 2) not in stored and (2, 4) not in stored
     assert memory.graph.link(4, 2) is None
+
+
+def add_moving(memory: Memory, node_id: int, descriptors: np.ndarray, T_odom: np.ndarray,
+               T_link: np.ndarray | None = None) -> int:
+    """A SLAM-mode frame: odometry pose, neighbour link from the previous node (``T_link``, e.g.
+    refined by scan matching; default: the odometry's relative pose). Returns the merged id."""
+    word_ids = memory.quantize(descriptors)
+    sig = Signature(id=node_id, map_id=memory.map_id, stamp_ns=node_id, word_ids=word_ids,
+                    keypoints=np.zeros((len(word_ids), 2), np.float32),
+                    points3d=np.zeros((len(word_ids), 3), np.float32), T_odom_base=T_odom)
+    previous = memory.last_location()
+    link = None
+    if previous is not None:
+        T = T_link if T_link is not None else transforms.relative(previous.T_odom_base, T_odom)
+        link = Link(previous.id, node_id, LinkType.NEIGHBOR, T, default_information(0.01))
+    memory.add_location(sig, None, link)
+    merged = memory.rehearse(sig, [])
+    memory.update_stm()
+    memory.commit()
+    memory.join()
+    return merged
+
+
+@pytest.mark.parametrize("weight_ignored", [False, True])
+def test_rehearsal_keeps_both_locations_of_a_moving_camera(tmp_path, descriptors, weight_ignored):
+    """SLAM mode, same view but the odometry moved 0.3 m: no merge (Mem/RehearsalMaxDistance);
+    the weight moves to the new node unless Mem/RehearsalWeightIgnoredWhileMoving."""
+    memory = make_memory(tmp_path, rehearsal_weight_ignored_while_moving=weight_ignored)
+    view = descriptors()
+    add_moving(memory, 1, view, transforms.from_xy_yaw(0.0, 0.0, 0.0))
+    memory.signatures[1].weight = 4
+    assert add_moving(memory, 2, view, transforms.from_xy_yaw(0.3, 0.0, 0.0)) == 0
+    assert set(memory.signatures) == {1, 2} and memory.graph.link(1, 2) is not None
+    assert (memory.signatures[1].weight, memory.signatures[2].weight) == ((4, 0) if weight_ignored else (0, 5))
+    # Turning on the spot (0.3 rad > Mem/RehearsalMaxAngle) is moving too.
+    assert add_moving(memory, 3, view, transforms.from_xy_yaw(0.3, 0.0, 0.3)) == 0
+    # Standing still (1 cm, Mem/RehearsalMaxDistance 5 cm): merged as in appearance-only mode.
+    assert add_moving(memory, 4, view, transforms.from_xy_yaw(0.31, 0.0, 0.3)) == 3
+    assert set(memory.signatures) == {1, 2, 4}
+
+
+def test_rehearsal_merge_keeps_the_refined_neighbour_link(tmp_path, descriptors):
+    """Merging 2 into 3 re-anchors 2's links on 3 through the stored (scan-refined) link 2 -> 3,
+    not through raw odometry: 3 -> 1 = inverse(T_2_3 refined) @ T_2_1."""
+    memory = make_memory(tmp_path)
+    view = descriptors()
+    add_moving(memory, 1, descriptors(), transforms.from_xy_yaw(0.0, 0.0, 0.0))
+    add_moving(memory, 2, view, transforms.from_xy_yaw(1.0, 0.0, 0.0), T_link=transforms.from_xy_yaw(0.9, 0.1, 0.05))
+    refined = transforms.from_xy_yaw(0.02, -0.01, 0.02)  # odometry says 0.04 m, 0 rad
+    assert add_moving(memory, 3, view, transforms.from_xy_yaw(1.04, 0.0, 0.0), T_link=refined) == 2
+    T_3_1 = memory.graph.link(3, 1).T_from_to
+    expected = transforms.inverse(refined) @ transforms.inverse(transforms.from_xy_yaw(0.9, 0.1, 0.05))
+    np.testing.assert_allclose(T_3_1, expected, atol=1e-9)
+    # The two links' uncertainties add up (RTAB-Map's Link::merge).
+    np.testing.assert_allclose(memory.graph.link(3, 1).information, default_information(0.02))

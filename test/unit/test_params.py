@@ -9,9 +9,10 @@ from rtabmap_ros2.errors import ParameterError
 
 
 def test_defaults_are_the_papers_table_i():
+    """Table I, except where issue 12's measurements chose RTAB-Map's values (see the fields' docs)."""
     p = Params()
     assert p.memory.stm_size == 30
-    assert p.memory.rehearsal_similarity == pytest.approx(0.20)
+    assert p.memory.rehearsal_similarity == pytest.approx(0.60)  # paper 0.20; RTAB-Map's default
     assert p.memory.recent_wm_ratio == pytest.approx(0.20)
     assert p.memory.bad_signature_ratio == pytest.approx(0.25)
     assert p.memory.time_threshold_ms == pytest.approx(700.0)
@@ -24,6 +25,14 @@ def test_defaults_are_the_papers_table_i():
 @pytest.mark.parametrize("alias, value, section, field, expected", [
     ("Mem/STMSize", "15", "memory", "stm_size", 15),
     ("Mem/RehearsalSimilarity", "0.45", "memory", "rehearsal_similarity", 0.45),
+    ("Kp/TfIdfLikelihoodUsed", "false", "bayes", "likelihood", "eq1"),
+    ("Kp/TfIdfLikelihoodUsed", "true", "bayes", "likelihood", "tf_idf"),
+    ("Kp/NewWordsComparedTogether", "false", "vocabulary", "new_words_compared_together", False),
+    ("Rtabmap/LoopRatio", "0.5", "bayes", "loop_ratio", 0.5),
+    ("Bayes/VirtualPlacePriorThr", "0.8", "bayes", "virtual_place_prior", 0.8),
+    ("Mem/RehearsalWeightIgnoredWhileMoving", "true", "memory", "rehearsal_weight_ignored_while_moving", True),
+    ("Mem/RehearsalMaxDistance", "0.1", "memory", "rehearsal_max_distance", 0.1),
+    ("Mem/RehearsalMaxAngle", "0.2", "memory", "rehearsal_max_angle", 0.2),
     ("Mem/RecentWmRatio", 0.3, "memory", "recent_wm_ratio", 0.3),
     ("Rtabmap/LoopThr", "0.2", "bayes", "loop_threshold", 0.2),
     ("Rtabmap/TimeThr", "500", "memory", "time_threshold_ms", 500.0),

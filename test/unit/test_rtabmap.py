@@ -191,3 +191,32 @@ def test_localization_mode_adds_no_location(tmp_path):
         assert len(rtabmap.memory.vocabulary) == words
         if len(rtabmap.memory.hypothesis_ids()) > 1:
             assert s.highest_hypothesis_id > 0
+
+
+def test_the_same_images_give_the_same_detections_whatever_the_load(tmp_path, monkeypatch):
+    """Issue 12: the IVF index is swapped in at a frame decided by the frame count, so a slow
+    background build (a loaded machine) changes nothing in the results."""
+    import threading
+    import time
+
+    from rtabmap_ros2.core import vocabulary as vocabulary_module
+
+    sequence = make_sequence(60, seed=REVISIT_SEED, segment_length=(10, 20))
+    params = Params().with_overrides(["vocabulary.index=ivf", "vocabulary.ivf_swap_frames=3"])
+    build = vocabulary_module._build_ivf
+
+    def runs() -> list:
+        with Rtabmap(params, tmp_path / "map.db", delete_existing=True) as rtabmap:
+            stats = run(rtabmap, sequence, len(sequence))
+            assert rtabmap.memory.vocabulary.uses_ivf
+        return [(s.highest_hypothesis_id, round(s.highest_hypothesis_value, 12), s.loop_closure_id,
+                 s.merged_id, s.vocabulary_size) for s in stats]
+
+    fast = runs()
+
+    def slow_build(*args, **kwargs):
+        if threading.current_thread() is not threading.main_thread():
+            time.sleep(0.3)  # a loaded machine: the build finishes frames later
+        return build(*args, **kwargs)
+    monkeypatch.setattr(vocabulary_module, "_build_ivf", slow_build)
+    assert runs() == fast

@@ -58,10 +58,38 @@ def test_quantize_twice_maps_to_same_words(vocab, rng):
     assert len(vocab) == 400
 
 
-def test_same_image_descriptors_do_not_match_each_other(vocab, rng):
+def test_a_feature_repeated_in_one_image_gives_one_word(vocab, rng):
+    """Kp/NewWordsComparedTogether (default): the image's new words are compared together."""
+    descriptors = random_binary(rng, 50)
+    ids, is_new = vocab.quantize(np.concatenate([descriptors, descriptors]))
+    assert is_new[:50].all() and not is_new[50:].any()
+    np.testing.assert_array_equal(ids[50:], ids[:50])
+    assert len(vocab) == 50 and len(np.unique(ids)) == 50
+    # A near copy (a few bits off) of an earlier descriptor of the same image matches it too.
+    near = flip_bits(rng, descriptors[:10], 6)
+    fresh = random_binary(rng, 10)
+    ids, is_new = vocab.quantize(np.concatenate([fresh, flip_bits(rng, fresh, 6), near]))
+    assert is_new[:10].all() and not is_new[10:].any()
+    np.testing.assert_array_equal(ids[10:20], ids[:10])
+
+
+def test_without_comparing_new_words_together_same_image_descriptors_do_not_match(rng):
+    vocab = Vocabulary(VocabularyParams(new_words_compared_together=False), binary=True)
     descriptors = random_binary(rng, 50)
     ids, is_new = vocab.quantize(np.concatenate([descriptors, descriptors]))
     assert is_new.all() and len(np.unique(ids)) == 100
+
+
+@pytest.mark.parametrize("together", [True, False])
+def test_an_exact_duplicate_of_two_identical_words_matches(rng, together):
+    """NNDR as RTAB-Map, d1 <= T_NNDR * d2: d1 = d2 = 0 matches instead of making a third word."""
+    vocab = Vocabulary(VocabularyParams(new_words_compared_together=together), binary=True)
+    twin = random_binary(rng, 1)
+    vocab.add_words([1, 2], np.concatenate([twin, twin]))
+    vocab.add_words(np.arange(3, 103), random_binary(rng, 100))
+    assert vocab.match(twin)[0] in (1, 2)
+    ids, is_new = vocab.quantize(np.concatenate([twin, twin]))
+    assert not is_new.any() and set(ids.tolist()) <= {1, 2} and len(vocab) == 102
 
 
 def test_perturbed_descriptors_map_mostly_to_same_words(vocab, rng):
@@ -263,15 +291,28 @@ def test_background_build_gives_same_decisions_as_synchronous(rng, gated_build):
     assert np.mean(background.match(centres[kept - 1]) == kept) > 0.95, "an added word was lost"
 
 
-def test_build_swapped_in_by_a_later_call(rng):
-    """Without join_training, a later call swaps the finished build in (no waiting on the frame)."""
-    vocab = Vocabulary(VocabularyParams(index="ivf"), binary=True)  # index=ivf: builds from 1 000 words
+def test_build_swapped_in_at_its_frame_whatever_the_load(rng, gated_build):
+    """The IVF swap happens at the ivf_swap_frames-th quantize call after the build started, not
+    when the thread happens to finish: a finished build waits, a slow one is waited for."""
+    params = VocabularyParams(index="ivf", ivf_swap_frames=3)  # index=ivf: builds from 1 000 words
     centres = random_binary(rng, 1500)
-    vocab.add_words(np.arange(1, 1501), centres)
-    vocab._build.done.wait(30)  # the thread finished; nothing swapped until the next call
-    assert not vocab.uses_ivf
-    assert vocab.match(centres[:10]).tolist() == list(range(1, 11))
-    assert vocab.uses_ivf and not vocab.training
+    outcomes = []
+    for slow in (False, True):
+        vocab = Vocabulary(params, binary=True)
+        vocab.add_words(np.arange(1, 1501), centres)
+        if not slow:
+            gated_build.set()
+            vocab._build.done.wait(30)  # finished, but not swapped before its frame
+        assert vocab.match(centres[:10]).tolist() == list(range(1, 11)) and not vocab.uses_ivf
+        frames = [vocab.quantize(flip_bits(rng, centres[k * 100:(k + 1) * 100], 8)) for k in range(2)]
+        assert not vocab.uses_ivf and vocab.training
+        if slow:
+            threading.Timer(0.2, gated_build.set).start()  # the third frame waits for it
+        frames.append(vocab.quantize(centres[200:300]))
+        assert vocab.uses_ivf and not vocab.training
+        outcomes.append(frames)
+        gated_build.clear()
+    assert outcomes[0][2][0].tolist() == list(range(201, 301))
 
 
 def test_close_and_garbage_collection_do_not_wait_for_training(rng, gated_build):
@@ -299,11 +340,11 @@ def test_background_build_error_is_raised_in_the_main_thread(rng, monkeypatch):
     def failing_build(*args, **kwargs):
         raise MemoryError("no memory for k-means")
     monkeypatch.setattr(vocabulary_module, "_build_ivf", failing_build)
-    vocab = Vocabulary(VocabularyParams(index="ivf"), binary=True)
+    vocab = Vocabulary(VocabularyParams(index="ivf", ivf_swap_frames=1), binary=True)
     vocab.add_words(np.arange(1, 1501), random_binary(rng, 1500))
     vocab._build.thread.join(30)
     with pytest.raises(MemoryError):
-        vocab.match(random_binary(rng, 3))
+        vocab.quantize(random_binary(rng, 3))  # the swap frame
     assert not vocab.training and not vocab.uses_ivf and len(vocab) == 1500
 
 
@@ -316,12 +357,13 @@ def test_sift_end_to_end(shared_data):
     previous = extractor.extract(cv2.imread(str(folder / "img_prev.png"), cv2.IMREAD_GRAYSCALE))
     current = extractor.extract(cv2.imread(str(folder / "img_curr.png"), cv2.IMREAD_GRAYSCALE))
     ids_prev, new_prev = vocab.quantize(previous.descriptors)
-    assert new_prev.all() and len(vocab) == len(previous)
+    # The image's own near-identical descriptors share a word (new words compared together).
+    assert new_prev.mean() > 0.8 and len(vocab) == new_prev.sum() == len(np.unique(ids_prev))
     ids_curr, new_curr = vocab.quantize(current.descriptors)
     shared = np.intersect1d(ids_prev, ids_curr)
-    assert len(shared) > 0.3 * len(current), "consecutive frames should share many words"
-    assert (~new_curr).sum() == np.isin(ids_curr, ids_prev).sum()
-    np.testing.assert_allclose(vocab.descriptors_of(ids_prev[:5]), previous.descriptors[:5])
+    assert len(shared) > 0.3 * len(np.unique(ids_curr)), "consecutive frames should share many words"
+    assert (~new_curr).sum() >= np.isin(ids_curr, ids_prev).sum()
+    np.testing.assert_allclose(vocab.descriptors_of(ids_prev[new_prev][:5]), previous.descriptors[new_prev][:5])
     vocab.add_references(1, ids_prev)
     vocab.add_references(2, ids_curr)
     ids, counts = np.unique(ids_curr, return_counts=True)
