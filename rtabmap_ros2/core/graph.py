@@ -76,6 +76,9 @@ class Graph:
 
     def __init__(self, links: Iterable[Link] = ()) -> None:
         self._adjacency: dict[int, dict[int, Link]] = {}
+        # Bumped by every link added or removed: tells a caller whether anything changed since
+        # it last looked (the local map's leaf update).
+        self.version = 0
         for link in links:
             self.add_link(link)
 
@@ -84,15 +87,18 @@ class Graph:
 
     def add_link(self, link: Link) -> None:
         """Add (or replace) the link between two nodes."""
+        self.version += 1
         self._adjacency.setdefault(link.from_id, {})[link.to_id] = link
         self._adjacency.setdefault(link.to_id, {})[link.from_id] = link
 
     def remove_link(self, a: int, b: int) -> None:
+        self.version += 1
         self._adjacency.get(a, {}).pop(b, None)
         self._adjacency.get(b, {}).pop(a, None)
 
     def remove_node(self, node_id: int) -> list[Link]:
         """Remove a node and return its links (oriented from it)."""
+        self.version += 1
         links = [link.oriented_from(node_id) for link in self._adjacency.pop(node_id, {}).values()]
         for link in links:
             self._adjacency.get(link.to_id, {}).pop(node_id, None)

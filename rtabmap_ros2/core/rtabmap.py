@@ -151,6 +151,10 @@ class Rtabmap:
         # confirming loop closure (the initial guess of the merged local map).
         self._merged_map_guess: dict[int, np.ndarray] = {}
         self._inactive_links: set[tuple[int, int]] = set()
+        # Graph version of the current local map solution (None: no valid solution to extend),
+        # and whether WM changed since (transfer, retrieval): see _leaf_update.
+        self._solved_version: Optional[int] = None
+        self._wm_changed = True
         self._grid: Optional[GridAccumulator] = None
         self._grid_poses: dict[int, np.ndarray] = {}
 
@@ -193,6 +197,7 @@ class Rtabmap:
         # Retrieval (Alg. 3): neighbours of the highest hypothesis come back from LTM.
         if hypothesis.location_id:
             stats.retrieved = len(self.memory.retrieve(hypothesis.location_id))
+            self._wm_changed |= bool(stats.retrieved)
         watch.lap("retrieval")
         # Local map (2014 §II-C), optimised every frame; graph work counts in pTime.
         if stats.location_id and frame.T_odom_base is not None:
@@ -214,6 +219,7 @@ class Rtabmap:
             protected = self.memory.time_neighbours(hypothesis.location_id) if hypothesis.location_id else set()
             transferred = self.memory.transfer(protected)
             stats.transferred = len(transferred)
+            self._wm_changed |= bool(transferred)
             for node in transferred:
                 self._optimized.pop(node, None)
                 self._map_poses.pop(node, None)
@@ -582,7 +588,11 @@ class Rtabmap:
         if not any(link.type.is_loop_closure for link in links):
             # A tree of neighbour links: chaining them is the optimum. (Re-using the previous
             # poses here fed round-off back every frame: rotations lost orthonormality
-            # exponentially, x2 per frame, and poses overflowed after ~1,000 frames.)
+            # exponentially, x2 per frame, and poses overflowed after ~1,000 frames.) Planar:
+            # Pose2 chaining, as the optimiser's solution would be (and _leaf_update is).
+            if self._planar:
+                planar_links = [replace(link, T_from_to=transforms.project_planar(link.T_from_to)) for link in links]
+                return chain_poses(root, transforms.project_planar(root_pose), planar_links), links
             return chain_poses(root, root_pose, links), links
         guess = _warm_start(root, root_pose, links, {**self._merged_map_guess, **self._optimized})
         self._merged_map_guess = {}
@@ -628,13 +638,62 @@ class Rtabmap:
         if memory.signatures[newest].T_odom_base is None:
             return False
         had_loops = bool(self._new_loops)
-        poses, links = self._optimize_component(newest)
+        solved, self._solved_version = self._solved_version, None
+        leaf = self._leaf_link(newest, solved)
+        if leaf is None:
+            poses, links = self._optimize_component(newest)
+            self._local_links = [link for link in links if link.key() not in self._inactive_links]
+        else:
+            poses = self._leaf_update(newest, leaf)
+            self._local_links.append(leaf)
         self._optimized = poses
+        self._solved_version = memory.graph.version
+        self._wm_changed = False
         self._map_poses.update(poses)
-        self._local_links = [link for link in links if link.key() not in self._inactive_links]
         self._T_map_odom = poses[newest] @ transforms.inverse(memory.signatures[newest].T_odom_base)
         return had_loops and not any(memory.graph.link(l.from_id, l.to_id) and l.key() not in self._inactive_links
                                      for l, _ in self._new_loops)
+
+    def _leaf_link(self, newest: int, solved: Optional[int]) -> Optional[Link]:
+        """The link from the last solution to ``newest`` when that one link is all that changed.
+
+        True when, since the last solution (graph version ``solved``), exactly one link was added,
+        it joins ``newest`` to a node of that solution, no loop closure came or went, no map was
+        merged, and WM neither lost nor gained a node. Returns it oriented towards ``newest``.
+        """
+        memory = self.memory
+        if (solved is None or self._wm_changed or self._new_loops or self._merged_map_guess
+                or memory.graph.version != solved + 1 or newest in self._optimized):
+            return None
+        links = memory.graph.links_of(newest)
+        if len(links) != 1 or links[0].to_id not in self._optimized:
+            return None
+        return links[0].inverted()
+
+    def _leaf_update(self, newest: int, link: Link) -> dict[int, np.ndarray]:
+        """The local map grown by one leaf, rooted at ``newest``: exact and O(n).
+
+        A node joined by a single link adds a factor that its own pose satisfies exactly, so the
+        optimum of the other nodes does not change (the robust kernel's decisions neither); only
+        the root moves to the new node (2014 §II-B), a rigid change of gauge of the previous
+        solution, which the between factors do not see. The result equals a batch solve's within
+        its convergence tolerance (test_local_map_incremental).
+        """
+        planar = bool(self._planar)
+        previous = self._optimized
+        T_link = transforms.project_planar(link.T_from_to) if planar else link.T_from_to
+        root_pose = self.memory.signatures[newest].T_odom_base
+        if planar:
+            root_pose = transforms.project_planar(root_pose)
+        grown = previous[link.from_id] @ T_link
+        # Re-orthonormalised: round-off of the previous poses must not feed back frame after
+        # frame (poses are composed again at every leaf).
+        align = _rigid(root_pose @ transforms.inverse(grown), planar)
+        ids = list(previous)
+        stacked = np.einsum("ij,njk->nik", align, np.stack([previous[n] for n in ids]))
+        poses = dict(zip(ids, stacked))
+        poses[newest] = root_pose
+        return poses
 
     def _fill_sizes(self, stats: Statistics) -> None:
         memory = self.memory
@@ -705,6 +764,16 @@ def _warm_start(root: int, root_pose: np.ndarray, links: list[Link],
         return None
     align = root_pose @ transforms.inverse(poses[root])
     return {n: align @ p for n, p in poses.items()}
+
+
+def _rigid(T: np.ndarray, planar: bool) -> np.ndarray:
+    """``T`` with its rotation projected back onto SO(3) (onto yaw only when ``planar``)."""
+    if planar:
+        return transforms.project_planar(T)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = np.array(T, dtype=float)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return out
 
 
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
