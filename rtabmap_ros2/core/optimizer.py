@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -117,6 +118,26 @@ def _noise(information: np.ndarray, planar: bool):
     return gtsam.noiseModel.Gaussian.Information(info)
 
 
+# Noise models of information matrices still alive (id -> (weak reference, planar, model)): a
+# local map is optimised again at every loop closure with mostly the same links, and building a
+# model (eigenvalue check, gtsam object) was a third of the solve's Python time at 2,000 links.
+_NOISE_CACHE: dict[int, tuple] = {}
+
+
+def _cached_noise(information: np.ndarray, planar: bool):
+    key = id(information)
+    hit = _NOISE_CACHE.get(key)
+    if hit is not None and hit[0]() is information and hit[1] == planar:
+        return hit[2]
+    noise = _noise(information, planar)
+    try:
+        ref = weakref.ref(information, lambda _, key=key: _NOISE_CACHE.pop(key, None))
+    except TypeError:  # not an ndarray (a nested list): no caching
+        return noise
+    _NOISE_CACHE[key] = (ref, planar, noise)
+    return noise
+
+
 def _between(link: Link, planar: bool, noise):
     import gtsam
 
@@ -166,7 +187,7 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
     initial = gtsam.Values()
     for node_id, pose in poses.items():
         initial.insert(node_id, _to_gtsam(pose, planar))
-    noises = {id(link): _noise(link.information, planar) for link in used}
+    noises = {id(link): _cached_noise(link.information, planar) for link in used}
     chi2_initial = _chi2(used, noises, initial, planar)
 
     kept = list(used)

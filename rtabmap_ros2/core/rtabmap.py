@@ -710,24 +710,25 @@ def _max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: bo
 
     Translation and rotation errors are taken separately (the residual transform's norm and
     angle over the link's standard deviations), as RTAB-Map's RGBD/OptimizeMaxError does.
+    All links at once (a loop closure frame checks every link of the local map).
     """
-    worst = 0.0
-    for link in links:
-        a, b = poses.get(link.from_id), poses.get(link.to_id)
-        if a is None or b is None:
-            continue
-        residual = link.residual(a, b)
-        info = np.diag(link.information)
-        if planar:
-            t_err = float(np.linalg.norm(residual[:2, 3]))
-            t_info, r_info = min(info[0], info[1]), info[5]
-            r_err = abs(transforms.yaw_of(residual))
-        else:
-            t_err = float(np.linalg.norm(residual[:3, 3]))
-            t_info, r_info = info[:3].min(), info[3:].min()
-            r_err = transforms.rotation_angle(residual)
-        worst = max(worst, t_err * np.sqrt(t_info), r_err * np.sqrt(r_info))
-    return worst
+    links = [link for link in links if link.from_id in poses and link.to_id in poses]
+    if not links:
+        return 0.0
+    A = np.stack([poses[link.from_id] for link in links])
+    B = np.stack([poses[link.to_id] for link in links])
+    T = np.stack([link.T_from_to for link in links])
+    residual = transforms.inverse_many(T) @ transforms.inverse_many(A) @ B
+    info = np.stack([np.diag(link.information) for link in links])
+    if planar:
+        t_err = np.linalg.norm(residual[:, :2, 3], axis=1)
+        t_info, r_info = np.minimum(info[:, 0], info[:, 1]), info[:, 5]
+        r_err = np.abs(np.arctan2(residual[:, 1, 0], residual[:, 0, 0]))
+    else:
+        t_err = np.linalg.norm(residual[:, :3, 3], axis=1)
+        t_info, r_info = info[:, :3].min(axis=1), info[:, 3:].min(axis=1)
+        r_err = np.arccos(np.clip((np.trace(residual[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    return float(max(np.max(t_err * np.sqrt(t_info)), np.max(r_err * np.sqrt(r_info))))
 
 
 def _links_within(graph: Graph, nodes: set[int]) -> list[Link]:
