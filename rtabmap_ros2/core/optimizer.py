@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Link, LinkType, chain_poses, connected_components
+from rtabmap_ros2.core.graph import Link, LinkType, bridges, chain_poses, connected_components
 from rtabmap_ros2.core.params import GraphParams
 from rtabmap_ros2.errors import OptimizationError
 
@@ -94,12 +94,6 @@ def _to_gtsam(T: np.ndarray, planar: bool):
     return gtsam.Pose3(np.asarray(T, dtype=np.float64))
 
 
-def _from_gtsam(pose, planar: bool) -> np.ndarray:
-    if planar:
-        return transforms.from_xy_yaw(pose.x(), pose.y(), pose.theta())
-    return np.asarray(pose.matrix(), dtype=np.float64)
-
-
 def gtsam_information(information: np.ndarray, planar: bool) -> np.ndarray:
     """Our 6x6 information (x, y, z, roll, pitch, yaw) in gtsam's tangent order (3x3 or 6x6)."""
     order = POSE2_FROM_OURS if planar else POSE3_FROM_OURS
@@ -118,31 +112,62 @@ def _noise(information: np.ndarray, planar: bool):
     return gtsam.noiseModel.Gaussian.Information(info)
 
 
-# Noise models of information matrices still alive (id -> (weak reference, planar, model)): a
-# local map is optimised again at every loop closure with mostly the same links, and building a
-# model (eigenvalue check, gtsam object) was a third of the solve's Python time at 2,000 links.
-_NOISE_CACHE: dict[int, tuple] = {}
+# gtsam objects made from arrays still alive ((kind, id) -> (weak reference, planar, object)): a
+# local map is optimised again at every loop closure with mostly the same links, and building
+# the noise models (eigenvalue check) and measurements was a third of the solve's Python time at
+# 2,000 links.
+_GTSAM_CACHE: dict[tuple[str, int], tuple] = {}
+
+
+def _cached(kind: str, array: np.ndarray, planar: bool, make):
+    key = (kind, id(array))
+    hit = _GTSAM_CACHE.get(key)
+    if hit is not None and hit[0]() is array and hit[1] == planar:
+        return hit[2]
+    value = make(array, planar)
+    try:
+        ref = weakref.ref(array, lambda _, key=key: _GTSAM_CACHE.pop(key, None))
+    except TypeError:  # not an ndarray (a nested list): no caching
+        return value
+    _GTSAM_CACHE[key] = (ref, planar, value)
+    return value
 
 
 def _cached_noise(information: np.ndarray, planar: bool):
-    key = id(information)
-    hit = _NOISE_CACHE.get(key)
-    if hit is not None and hit[0]() is information and hit[1] == planar:
-        return hit[2]
-    noise = _noise(information, planar)
-    try:
-        ref = weakref.ref(information, lambda _, key=key: _NOISE_CACHE.pop(key, None))
-    except TypeError:  # not an ndarray (a nested list): no caching
-        return noise
-    _NOISE_CACHE[key] = (ref, planar, noise)
-    return noise
+    return _cached("noise", information, planar, _noise)
+
+
+def _robust_noise(information: np.ndarray, planar: bool):
+    import gtsam
+
+    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), _cached_noise(information, planar))
 
 
 def _between(link: Link, planar: bool, noise):
     import gtsam
 
     factor = gtsam.BetweenFactorPose2 if planar else gtsam.BetweenFactorPose3
-    return factor(link.from_id, link.to_id, _to_gtsam(link.T_from_to, planar), noise)
+    return factor(link.from_id, link.to_id, _cached("pose", link.T_from_to, planar, _to_gtsam), noise)
+
+
+def _poses_of(values, planar: bool) -> dict[int, np.ndarray]:
+    """Every pose of ``values`` as a 4x4 array, at once."""
+    import gtsam
+
+    keys = list(values.keys())
+    out = np.zeros((len(keys), 4, 4))
+    out[:, 3, 3] = 1.0
+    if planar:
+        xyt = gtsam.utilities.extractPose2(values).reshape(-1, 3)
+        c, s = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
+        out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
+        out[:, 2, 2] = 1.0
+        out[:, :2, 3] = xyt[:, :2]
+    else:
+        rt = gtsam.utilities.extractPose3(values).reshape(-1, 12)
+        out[:, :3, :3] = rt[:, :9].reshape(-1, 3, 3)
+        out[:, :3, 3] = rt[:, 9:]
+    return dict(zip(keys, out))
 
 
 # -- optimisation --------------------------------------------------------------------------------
@@ -206,15 +231,24 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
             good_again = [link for link in rejected if scales[id(link)] >= threshold]
             readmitted = {id(link) for link in good_again}
             rejected = [link for link in rejected if id(link) not in readmitted]
-            kept = [link for link in used if id(link) not in {id(r) for r in rejected}]
-            # Worst first, but never a link whose removal disconnects the graph: with no other
-            # path between its ends, nothing in the graph contradicts it.
-            dropped = []
-            for link in bad:
-                trial = [k for k in kept if k is not link]
-                if len(connected_components(poses.keys(), trial)) == 1:
-                    kept = trial
-                    dropped.append(link)
+            out = {id(r) for r in rejected}
+            kept = [link for link in used if id(link) not in out]
+            # Worst first, but never a link whose removal disconnects the graph (a bridge): with
+            # no other path between its ends, nothing in the graph contradicts it.
+            # Usually dropping every bad link but the bridges keeps the graph connected (then each
+            # was no bridge at its turn either); otherwise one at a time, bridges recomputed.
+            cut = {id(kept[i]) for i in bridges(poses.keys(), kept)}
+            dropped = [link for link in bad if id(link) not in cut]
+            out = {id(d) for d in dropped}
+            trial = [k for k in kept if id(k) not in out]
+            if dropped and len(connected_components(poses.keys(), trial)) > 1:
+                dropped, trial = [], kept
+                for link in bad:
+                    cut = {id(trial[i]) for i in bridges(poses.keys(), trial)}
+                    if id(link) not in cut:
+                        trial = [k for k in trial if k is not link]
+                        dropped.append(link)
+            kept = trial
             if not dropped and not good_again:
                 break
             rejected += dropped
@@ -224,12 +258,8 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
             logger.debug("robust optimisation rejected %d loop closure(s): %s", len(rejected),
                         [(l.from_id, l.to_id) for l in rejected])
     chi2_final = _chi2(kept, noises, values, planar)
-    out = {node_id: _from_gtsam(_value(values, node_id, planar), planar) for node_id in poses}
+    out = _poses_of(values, planar)
     return OptimizationResult(out, chi2_initial, chi2_final, iterations, rejected, time.perf_counter() - start)
-
-
-def _value(values, key: int, planar: bool):
-    return values.atPose2(key) if planar else values.atPose3(key)
 
 
 def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np.ndarray,
@@ -246,7 +276,7 @@ def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np
         noise = noises[id(link)]
         if params.robust and link.type.is_loop_closure:
             # DCS on loop closures (Agarwal et al. 2013), the paper's successors' choice.
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), noise)
+            noise = _cached("robust", link.information, planar, _robust_noise)
         graph.add(_between(link, planar, noise))
     if params.optimizer == "lm":
         opt_params = gtsam.LevenbergMarquardtParams()

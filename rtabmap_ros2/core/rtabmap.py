@@ -582,7 +582,7 @@ class Rtabmap:
         """
         memory = self.memory
         component = memory.graph.component(root, allowed=memory.signatures)
-        links = _links_within(memory.graph, component)
+        links = memory.graph.links_within(component)
         root_pose = memory.signatures[root].T_odom_base
         self._inactive_links = set()
         if not any(link.type.is_loop_closure for link in links):
@@ -594,7 +594,7 @@ class Rtabmap:
                 planar_links = [replace(link, T_from_to=transforms.project_planar(link.T_from_to)) for link in links]
                 return chain_poses(root, transforms.project_planar(root_pose), planar_links), links
             return chain_poses(root, root_pose, links), links
-        guess = _warm_start(root, root_pose, links, {**self._merged_map_guess, **self._optimized})
+        guess = _warm_start(root, root_pose, memory.graph, component, {**self._merged_map_guess, **self._optimized})
         self._merged_map_guess = {}
         if guess is None or not self._fits_inter_session_majority(guess, links):
             guess = consensus_guess(root, root_pose, links)
@@ -731,38 +731,29 @@ def _max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: bo
     return float(max(np.max(t_err * np.sqrt(t_info)), np.max(r_err * np.sqrt(r_info))))
 
 
-def _links_within(graph: Graph, nodes: set[int]) -> list[Link]:
-    """Links whose two ends are in ``nodes``, each once."""
-    out = []
-    for node in nodes:
-        for link in graph.links_of(node):
-            if link.to_id in nodes and node < link.to_id:
-                out.append(link)
-    return out
-
-
-def _warm_start(root: int, root_pose: np.ndarray, links: list[Link],
+def _warm_start(root: int, root_pose: np.ndarray, graph: Graph, nodes: set[int],
                 previous: dict[int, np.ndarray]) -> Optional[dict[int, np.ndarray]]:
     """Initial guess from the previous optimised poses, new nodes chained from them by their
-    links, all moved rigidly so the root sits at ``root_pose``; None without a previous solution
-    or when it does not reach every node (a map merged this frame: its nodes are reached only
-    against the links' direction, and a guess without them put the merged map 195 std devs off)."""
-    nodes = {link.from_id for link in links} | {link.to_id for link in links} | {root}
+    links (in ``graph``, within ``nodes``), all moved rigidly so the root sits at ``root_pose``;
+    None without a previous solution or when it does not reach every node (a map merged this
+    frame: its nodes are reached only against the links' direction, and a guess without them put
+    the merged map 195 std devs off)."""
     poses = {n: previous[n] for n in nodes if n in previous}
     if not poses:
         return None
-    graph = Graph(links)
-    frontier = list(poses)
-    while frontier:
-        reached = []
-        for node in frontier:
-            for link in graph.links_of(node):
-                if link.to_id not in poses:
-                    poses[link.to_id] = poses[node] @ link.T_from_to
-                    reached.append(link.to_id)
-        frontier = reached
-    if len(poses) < len(nodes):
-        return None
+    missing = [n for n in nodes if n not in poses]
+    while missing:
+        # Reached from a placed neighbour: pose_missing = pose_placed @ inv(T_missing_placed).
+        left = []
+        for node in missing:
+            link = next((l for l in graph.links_of(node) if l.to_id in poses and l.to_id in nodes), None)
+            if link is None:
+                left.append(node)
+            else:
+                poses[node] = poses[link.to_id] @ transforms.inverse(link.T_from_to)
+        if len(left) == len(missing):
+            return None
+        missing = left
     align = root_pose @ transforms.inverse(poses[root])
     return {n: align @ p for n, p in poses.items()}
 
