@@ -354,7 +354,7 @@ class Rtabmap:
         sig = Signature(id=node_id, map_id=memory.map_id, stamp_ns=frame.stamp_ns, word_ids=word_ids,
                         keypoints=features.keypoints, points3d=points3d, T_odom_base=frame.T_odom_base,
                         scan=frame.scan, camera=frame.camera, bad=bad)
-        blobs = SensorBlobs.encode(frame.rgb, frame.depth_m, frame.odom_covariance)
+        blobs = SensorBlobs.deferred(frame.rgb, frame.depth_m, frame.odom_covariance)
         watch.lap("database")
         # Alg. 1 line 7: insert into STM with a neighbour link to the previous location.
         previous = memory.last_location()
