@@ -297,8 +297,10 @@ class Memory:
         # Alg. 4 stops when as many words left as came in: that bounds the vocabulary, the
         # paper's cost. Ours is per location too (Bayes filter, local map), so WM must also not
         # grow: at least as many locations leave as entered WM this frame (one from STM and the
-        # retrieved ones; 5,000-image run: transfer and retrieval cancelled, WM grew 1 a frame).
-        wanted_locations = 1 + len(self.retrieved_now)
+        # retrieved ones; 5,000-image run: transfer and retrieval cancelled, WM grew 1 a frame),
+        # plus one, as RTAB-Map's Memory::forget ("one more than total added during the
+        # iteration"): WM shrinks while pTime stays over T_time.
+        wanted_locations = 2 + len(self.retrieved_now)
         transferred: list[int] = []
         words_out = 0
         for _, node in candidates:

@@ -217,7 +217,7 @@ class Rtabmap:
         threshold = self.params.memory.time_threshold_ms
         if threshold > 0 and stats.process_time_ms > threshold:
             protected = self.memory.time_neighbours(hypothesis.location_id) if hypothesis.location_id else set()
-            transferred = self.memory.transfer(protected)
+            transferred = self.memory.transfer(protected | self._near_robot(stats.location_id))
             stats.transferred = len(transferred)
             self._wm_changed |= bool(transferred)
             for node in transferred:
@@ -694,6 +694,23 @@ class Rtabmap:
         poses = dict(zip(ids, stacked))
         poses[newest] = root_pose
         return poses
+
+    def _near_robot(self, newest: int) -> set[int]:
+        """SLAM mode: the WM nodes of the local map nearest the newest node, within
+        ``memory.local_radius``, at most ``memory.local_immunization_ratio`` of WM: they stay
+        in WM so the local map around the robot survives transfers (RTAB-Map's
+        RGBD/LocalImmunizationRatio and RGBD/LocalRadius, Rtabmap::process before Memory::forget)."""
+        params = self.params.memory
+        budget = int(params.local_immunization_ratio * len(self.memory.wm))
+        if budget <= 0 or newest not in self._optimized:
+            return set()
+        ids = [n for n in self._optimized if n in self.memory.wm]
+        if not ids:
+            return set()
+        xyz = np.stack([self._optimized[n][:3, 3] for n in ids])
+        distance = np.linalg.norm(xyz - self._optimized[newest][:3, 3], axis=1)
+        nearest = np.argsort(distance, kind="stable")[:budget]
+        return {ids[i] for i in nearest if distance[i] <= params.local_radius}
 
     def _fill_sizes(self, stats: Statistics) -> None:
         memory = self.memory
