@@ -16,9 +16,11 @@ import argparse
 import contextlib
 import csv
 import logging
+import queue
+import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Optional
+from typing import Callable, Iterable, Iterator, Optional
 
 from rtabmap_ros2.cli.common_args import add_param_arguments
 
@@ -79,6 +81,52 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+# Frames decoded ahead by a reader thread while the current one is processed (JPEG / PNG decoding
+# releases the GIL: on 2 cores it overlaps with the frame's processing).
+PREFETCH_FRAMES = 2
+
+
+def prefetched(frames: Iterable, depth: int = PREFETCH_FRAMES) -> Iterator:
+    """Items of ``frames`` produced by a background thread, up to ``depth`` ahead; an exception
+    raised while producing them is raised here, in order."""
+    items: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def produce() -> None:
+        try:
+            for item in frames:
+                while not stop.is_set():
+                    try:
+                        items.put((item, None), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            items.put((end, None))
+        except BaseException as exc:  # handed to the consumer
+            items.put((end, exc))
+
+    thread = threading.Thread(target=produce, name="rtabmap-frame-reader", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, exc = items.get()
+            if exc is not None:
+                raise exc
+            if item is end:
+                return
+            yield item
+    finally:
+        stop.set()
+        while thread.is_alive():
+            try:
+                items.get_nowait()
+            except queue.Empty:
+                thread.join(0.05)
+
+
 def map_datasets(rtabmap, datasets: Iterable[tuple[str, object]], progress: bool = True,
                  on_statistics: Optional[Callable] = None,
                  print_line: Callable[[str], None] = print) -> list[SessionSummary]:
@@ -104,7 +152,7 @@ def map_datasets(rtabmap, datasets: Iterable[tuple[str, object]], progress: bool
         if index:
             rtabmap.trigger_new_map()  # one session per bag
         bar = tqdm(total=len(dataset), desc=name, unit="frame", disable=not progress, leave=False)
-        for frame in dataset:
+        for frame in prefetched(dataset):
             bar.update(1)
             try:
                 stats = rtabmap.process(frame)
