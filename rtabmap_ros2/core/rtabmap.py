@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Optional
@@ -758,19 +759,17 @@ def _warm_start(root: int, root_pose: np.ndarray, graph: Graph, nodes: set[int],
     poses = {n: previous[n] for n in nodes if n in previous}
     if not poses:
         return None
-    missing = [n for n in nodes if n not in poses]
-    while missing:
-        # Reached from a placed neighbour: pose_missing = pose_placed @ inv(T_missing_placed).
-        left = []
-        for node in missing:
-            link = next((l for l in graph.links_of(node) if l.to_id in poses and l.to_id in nodes), None)
-            if link is None:
-                left.append(node)
-            else:
-                poses[node] = poses[link.to_id] @ transforms.inverse(link.T_from_to)
-        if len(left) == len(missing):
-            return None
-        missing = left
+    # Breadth-first from the placed nodes next to a missing one (usually the previous newest).
+    frontier = {other for n in nodes if n not in poses for other in graph.neighbors(n) if other in poses}
+    queue = deque(frontier)
+    while queue:
+        node = queue.popleft()
+        for link in graph.links_of(node):
+            if link.to_id in nodes and link.to_id not in poses:
+                poses[link.to_id] = poses[node] @ link.T_from_to
+                queue.append(link.to_id)
+    if len(poses) < len(nodes):
+        return None
     align = root_pose @ transforms.inverse(poses[root])
     return {n: align @ p for n, p in poses.items()}
 
