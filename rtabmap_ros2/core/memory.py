@@ -293,7 +293,9 @@ class Memory:
             m = self.signatures[node].map_id
             per_map[m] = per_map.get(m, 0) + 1
         candidates = sorted((self.signatures[n].weight, n) for n in self.wm if n not in immune)
-        wanted = max(self.words_added, 1)
+        # (Not at least one word: with no new word, e.g. revisiting, every location whose words
+        # others share would go, and without words at all WM emptied in one frame.)
+        wanted = self.words_added
         # Alg. 4 stops when as many words left as came in: that bounds the vocabulary, the
         # paper's cost. Ours is per location too (Bayes filter, local map), so WM must also not
         # grow: at least as many locations leave as entered WM this frame (one from STM and the

@@ -93,3 +93,56 @@ def test_leaf_update_equals_the_batch_solve_on_the_intel_graph(shared_data, tmp_
         assert len(rtabmap._optimized) == NODES
     finally:
         rtabmap.close()
+
+
+def _corridor(tmp_path, overrides: list[str]) -> Rtabmap:
+    """40 nodes along a straight corridor (0.5 m apart, one session), the newest (40) in STM; the
+    nodes nearest the robot weigh least, so the weight rule alone would transfer them first."""
+    from rtabmap_ros2.core.graph import Link, default_information
+
+    params = Params().with_overrides(["memory.stm_size=1", "memory.recent_wm_ratio=0", *overrides])
+    rtabmap = Rtabmap(params, tmp_path / "corridor.db", delete_existing=True)
+    memory = rtabmap.memory
+    rtabmap._planar = True
+    for k in range(1, 41):
+        sig = Signature(id=k, map_id=0, stamp_ns=k, T_odom_base=transforms.from_xy_yaw(0.5 * k, 0.0, 0.0),
+                        weight=41 - k)
+        link = None if k == 1 else Link(k - 1, k, LinkType.NEIGHBOR, transforms.from_xy_yaw(0.5, 0.0, 0.0),
+                                        default_information(1e-4))
+        memory.add_location(sig, None, link)
+        memory.update_stm()
+        rtabmap._update_local_map(k)
+        memory.commit()
+    return rtabmap
+
+
+def _transfer_frames(rtabmap: Rtabmap, frames: int) -> None:
+    """``frames`` frames over T_time (no new word, nothing retrieved)."""
+    for _ in range(frames):
+        rtabmap.memory.words_added = 0
+        rtabmap.memory.transfer(rtabmap._near_robot(40))
+        rtabmap.memory.commit()
+
+
+def test_transfer_keeps_the_local_map_nearest_the_robot(tmp_path):
+    """SLAM mode (RGBD/LocalImmunizationRatio, RGBD/LocalRadius): on transfer, the WM nodes of the
+    local map nearest the robot stay, at most the ratio of WM, within the radius."""
+    rtabmap = _corridor(tmp_path, ["memory.local_immunization_ratio=0.25", "memory.local_radius=10.0"])
+    try:
+        # 25 % of WM (39 nodes) = 9 nodes, the nearest first: 39..31 (0.5..4.5 m).
+        assert rtabmap._near_robot(40) == set(range(31, 40))
+        _transfer_frames(rtabmap, 5)  # 2 locations a frame (one more than entered WM)
+        assert len(rtabmap.memory.wm) == 29
+        assert set(range(34, 40)) <= set(rtabmap.memory.wm)
+        # A small radius protects fewer nodes than the ratio allows.
+        rtabmap.params = rtabmap.params.with_overrides(["memory.local_radius=1.0"])
+        assert rtabmap._near_robot(40) == {38, 39}  # 1.0 and 0.5 m away
+    finally:
+        rtabmap.close()
+    # Without it, the lightest nodes go: the ones around the robot.
+    rtabmap = _corridor(tmp_path, ["memory.local_immunization_ratio=0"])
+    try:
+        _transfer_frames(rtabmap, 5)
+        assert set(rtabmap.memory.wm).isdisjoint(range(30, 40))
+    finally:
+        rtabmap.close()
