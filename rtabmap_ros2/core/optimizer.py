@@ -112,14 +112,14 @@ def _noise(information: np.ndarray, planar: bool):
     return gtsam.noiseModel.Gaussian.Information(info)
 
 
-# gtsam objects made from arrays still alive ((kind, id) -> (weak reference, planar, object)): a
-# local map is optimised again at every loop closure with mostly the same links, and building
-# the noise models (eigenvalue check) and measurements was a third of the solve's Python time at
-# 2,000 links.
+# gtsam objects made from arrays or links still alive ((kind, id) -> (weak reference, planar,
+# object)): a local map is optimised again at every loop closure with mostly the same links, and
+# building the noise models (eigenvalue check), measurements and factors was most of the solve's
+# Python time at 2,000 links.
 _GTSAM_CACHE: dict[tuple[str, int], tuple] = {}
 
 
-def _cached(kind: str, array: np.ndarray, planar: bool, make):
+def _cached(kind: str, array, planar: bool, make):
     key = (kind, id(array))
     hit = _GTSAM_CACHE.get(key)
     if hit is not None and hit[0]() is array and hit[1] == planar:
@@ -127,7 +127,7 @@ def _cached(kind: str, array: np.ndarray, planar: bool, make):
     value = make(array, planar)
     try:
         ref = weakref.ref(array, lambda _, key=key: _GTSAM_CACHE.pop(key, None))
-    except TypeError:  # not an ndarray (a nested list): no caching
+    except TypeError:  # not weakly referable (a nested list): no caching
         return value
     _GTSAM_CACHE[key] = (ref, planar, value)
     return value
@@ -141,6 +141,14 @@ def _robust_noise(information: np.ndarray, planar: bool):
     import gtsam
 
     return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), _cached_noise(information, planar))
+
+
+def _plain_factor(link: Link, planar: bool):
+    return _between(link, planar, _cached_noise(link.information, planar))
+
+
+def _robust_factor(link: Link, planar: bool):
+    return _between(link, planar, _cached("robust", link.information, planar, _robust_noise))
 
 
 def _between(link: Link, planar: bool, noise):
@@ -212,23 +220,31 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
     initial = gtsam.Values()
     for node_id, pose in poses.items():
         initial.insert(node_id, _to_gtsam(pose, planar))
-    noises = {id(link): _cached_noise(link.information, planar) for link in used}
-    chi2_initial = _chi2(used, noises, initial, planar)
+    # One Gaussian factor per link, made once: chi2 and the DCS scales are read from them.
+    plain = {id(link): _cached("factor", link, planar, _plain_factor) for link in used}
+    robust = {}
+    if params.robust:
+        # DCS on loop closures (Agarwal et al. 2013), the paper's successors' choice.
+        robust = {id(link): _cached("robust factor", link, planar, _robust_factor)
+                  for link in used if link.type.is_loop_closure}
+    factors = {**plain, **robust}
+    chi2_initial = _chi2(plain.values(), initial)
 
     kept = list(used)
     rejected: list[Link] = []
-    values, iterations = _solve(kept, noises, initial, root_id, poses[root_id], params, planar)
+    values, iterations = _solve(kept, factors, initial, root_id, poses[root_id], params, planar)
     if params.robust:
         # Robust (DCS) pass: drop loop closures the rest of the graph disagrees with, re-optimise.
         # From a poor initial guess DCS can leave a few true loop closures unsatisfied: rejected
         # links that agree with the re-optimised solution are re-admitted (bounded rounds).
         threshold = params.robust_reject_scale
         for _ in range(ROBUST_ROUNDS):
-            scales = {id(link): _dcs_scale(link, noises[id(link)], values, planar) for link in used
-                      if link.type.is_loop_closure}
+            scales = {key: _dcs_scale(plain[key], values) for key in robust}
             bad = sorted((link for link in kept if link.type.is_loop_closure and scales[id(link)] < threshold),
                          key=lambda link: scales[id(link)])
             good_again = [link for link in rejected if scales[id(link)] >= threshold]
+            if not bad and not good_again:
+                break
             readmitted = {id(link) for link in good_again}
             rejected = [link for link in rejected if id(link) not in readmitted]
             out = {id(r) for r in rejected}
@@ -237,7 +253,7 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
             # no other path between its ends, nothing in the graph contradicts it.
             # Usually dropping every bad link but the bridges keeps the graph connected (then each
             # was no bridge at its turn either); otherwise one at a time, bridges recomputed.
-            cut = {id(kept[i]) for i in bridges(poses.keys(), kept)}
+            cut = {id(kept[i]) for i in bridges(poses.keys(), kept)} if bad else set()
             dropped = [link for link in bad if id(link) not in cut]
             out = {id(d) for d in dropped}
             trial = [k for k in kept if id(k) not in out]
@@ -252,19 +268,20 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
             if not dropped and not good_again:
                 break
             rejected += dropped
-            values, more = _solve(kept, noises, values, root_id, poses[root_id], params, planar)
+            values, more = _solve(kept, factors, values, root_id, poses[root_id], params, planar)
             iterations += more
         if rejected:
             logger.debug("robust optimisation rejected %d loop closure(s): %s", len(rejected),
                         [(l.from_id, l.to_id) for l in rejected])
-    chi2_final = _chi2(kept, noises, values, planar)
+    chi2_final = _chi2((plain[id(link)] for link in kept), values)
     out = _poses_of(values, planar)
     return OptimizationResult(out, chi2_initial, chi2_final, iterations, rejected, time.perf_counter() - start)
 
 
-def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np.ndarray,
+def _solve(links: list[Link], factors: dict, initial, root_id: int, root_pose: np.ndarray,
            params: GraphParams, planar: bool):
-    """Build the factor graph (robust kernels on loop closures if asked) and run the optimiser."""
+    """Run the optimiser on the links' factors (``factors``: id(link) -> factor, robust on loop
+    closures if asked) with the root held by a strong prior."""
     import gtsam
 
     graph = gtsam.NonlinearFactorGraph()
@@ -273,11 +290,7 @@ def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np
     prior = gtsam.PriorFactorPose2 if planar else gtsam.PriorFactorPose3
     graph.add(prior(root_id, _to_gtsam(root_pose, planar), root_noise))
     for link in links:
-        noise = noises[id(link)]
-        if params.robust and link.type.is_loop_closure:
-            # DCS on loop closures (Agarwal et al. 2013), the paper's successors' choice.
-            noise = _cached("robust", link.information, planar, _robust_noise)
-        graph.add(_between(link, planar, noise))
+        graph.add(factors[id(link)])
     if params.optimizer == "lm":
         opt_params = gtsam.LevenbergMarquardtParams()
         cls = gtsam.LevenbergMarquardtOptimizer
@@ -303,19 +316,14 @@ def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np
     return values, int(optimizer.iterations())
 
 
-def _chi2(links: list[Link], noises: dict, values, planar: bool) -> float:
-    """Sum of whitened squared errors of the links (plain Gaussian noise; 2 x gtsam's error)."""
-    import gtsam
-
-    graph = gtsam.NonlinearFactorGraph()
-    for link in links:
-        graph.add(_between(link, planar, noises[id(link)]))
-    return 2.0 * graph.error(values)
+def _chi2(factors, values) -> float:
+    """Sum of whitened squared errors of Gaussian factors (2 x gtsam's error)."""
+    return 2.0 * float(sum(factor.error(values) for factor in factors))
 
 
-def _dcs_scale(link: Link, noise, values, planar: bool) -> float:
-    """DCS scale ``min(1, 2 phi / (phi + chi2_i))`` of one link at ``values``."""
-    chi2_i = 2.0 * _between(link, planar, noise).error(values)
+def _dcs_scale(factor, values) -> float:
+    """DCS scale ``min(1, 2 phi / (phi + chi2_i))`` of one link's Gaussian factor at ``values``."""
+    chi2_i = 2.0 * factor.error(values)
     return min(1.0, 2.0 * DCS_PHI / (DCS_PHI + chi2_i))
 
 
