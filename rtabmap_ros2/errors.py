@@ -4,6 +4,8 @@ Messages say what was wrong, with the offending value, and what to do. Only entr
 node's ``main``, the command line) turn them into log lines and exit codes.
 """
 
+from __future__ import annotations
+
 
 class RtabmapError(Exception):
     """Base class of every error raised on purpose by rtabmap_ros2."""
@@ -14,7 +16,19 @@ class ParameterError(RtabmapError, ValueError):
 
 
 class SensorDataError(RtabmapError, ValueError):
-    """A sensor frame or message is unusable (wrong encoding, NaN pose, sizes that disagree...)."""
+    """A sensor frame or message is unusable (wrong encoding, NaN pose, sizes that disagree...).
+
+    Attributes:
+        reason: short, stable name of the fault (``encoding``, ``short_data``, ``no_valid_depth``...):
+            the node logs once and counts per (topic, reason).
+        source: the part of a frame at fault (``rgb``, ``depth``, ``scan``, ``odom``,
+            ``camera_info``), or None when the message itself is named by the caller.
+    """
+
+    def __init__(self, message: str, reason: str = "invalid", source: str | None = None) -> None:
+        super().__init__(message)
+        self.reason = reason
+        self.source = source
 
 
 class DatabaseError(RtabmapError):

@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     from rtabmap_ros2.core.rtabmap import Rtabmap
-    from rtabmap_ros2.errors import SensorDataError
+    from rtabmap_ros2.errors import DatasetError, SensorDataError
     from rtabmap_ros2.cli.common_args import params_from_args
     from rtabmap_ros2.io.datasets import ImageFolderDataset
     from rtabmap_ros2.io.evaluation import evaluate_rows, load_ground_truth
@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     if args.ground_truth:
         _exclude_ground_truth(dataset, Path(args.ground_truth))
     gt = load_ground_truth(args.ground_truth, len(dataset)) if args.ground_truth else None
+    dataset.check_readable()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     params.to_yaml(out / "params.yaml")
@@ -100,6 +101,9 @@ def run(args: argparse.Namespace) -> int:
                     progress.set_postfix(wm=stats.wm_size, loop=stats.loop_closure_id, refresh=False)
             writer.writerow(row)
             rows.append(row)
+    if not any(r["status"] in (STATUS_OK, STATUS_BAD) for r in rows):
+        raise DatasetError(f"none of the {len(rows)} images of {args.image_dir} could be processed "
+                           f"(see the warnings above); {out / 'detections.csv'} lists why")
     _plot_timing(rows, params.memory.time_threshold_ms, out / "timing.png")
     loops = sum(1 for r in rows if int(r["loop_closure_id"]) > 0)
     print(f"{len(rows)} images, {loops} loop closures -> {out / 'detections.csv'}")

@@ -55,6 +55,7 @@ from typing import Any, Iterable, Optional
 import cv2
 import numpy as np
 
+from rtabmap_ros2.core import files
 from rtabmap_ros2.core.graph import Link, LinkType
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 from rtabmap_ros2.core.signature import Signature
@@ -850,21 +851,32 @@ class Database:
     # -- maintenance -----------------------------------------------------------------------------
 
     def backup(self, path: str | Path) -> None:
-        """Copy the database to a NEW file with SQLite's online backup API (consistent snapshot)."""
+        """Copy the database to a NEW file with SQLite's online backup API (consistent snapshot).
+
+        The copy is written under a temporary name in the target folder and linked to ``path``
+        only when complete (:mod:`rtabmap_ros2.core.files`): ``path`` is never followed (a
+        planted symlink, even dangling, makes the backup fail) and never overwritten.
+        """
         dest_path = Path(path).expanduser().absolute()
-        if dest_path.exists():
+        if dest_path.exists() or dest_path.is_symlink():
             raise DatabaseError(f"backup target {dest_path} already exists: choose a new file name")
         if not dest_path.parent.is_dir():
             raise DatabaseError(f"backup target folder {dest_path.parent} does not exist")
         try:
-            dest = sqlite3.connect(str(dest_path))
-            try:
-                self.conn.backup(dest)
-                dest.execute("PRAGMA journal_mode=DELETE")
-            finally:
-                dest.close()
+            with files.new_path(dest_path, exclusive=True) as tmp:
+                dest = sqlite3.connect(str(tmp))
+                try:
+                    self.conn.backup(dest)
+                    dest.execute("PRAGMA journal_mode=DELETE")
+                finally:
+                    dest.close()
+        except FileExistsError as e:
+            raise DatabaseError(f"backup target {dest_path} appeared while the backup was written (a file or a "
+                                "symlink): not overwritten, not followed; choose a new file name") from e
         except sqlite3.Error as e:
             raise DatabaseError(f"backup of database {self.path} to {dest_path} failed: {e}") from e
+        except OSError as e:
+            raise DatabaseError(f"backup of database {self.path} to {dest_path} failed: {e.strerror or e}") from e
 
     def close(self) -> None:
         """Finish background writers, checkpoint the WAL and close (idempotent).

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rtabmap_ros2.core import files
 from rtabmap_ros2.core.params import GridParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 
@@ -307,7 +308,8 @@ def assemble_cloud(poses: dict[int, np.ndarray], depths: dict[int, np.ndarray], 
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None) -> None:
-    """Binary little-endian PLY with ``x y z`` float and ``red green blue`` uchar per vertex.
+    """Binary little-endian PLY with ``x y z`` float and ``red green blue`` uchar per vertex
+    (written through a temporary file, :mod:`rtabmap_ros2.core.files`).
 
     Args:
         path: output file.
@@ -324,7 +326,7 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
     header = ("ply\nformat binary_little_endian 1.0\ncomment rtabmap_ros2 assembled cloud\n"
               f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\n"
               "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    with open(path, "wb") as f:
+    with files.new_file(path, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(vertex.tobytes())
 

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core import files, transforms
 from rtabmap_ros2.core.graph import Link, LinkType, bridges, chain_poses, connected_components
 from rtabmap_ros2.core.params import GraphParams
 from rtabmap_ros2.errors import OptimizationError
@@ -56,6 +56,12 @@ POSE2_FROM_OURS = [0, 1, 5]
 G2O_QUAT_PER_ANGLE = 0.5
 # Robust mode: reject / re-optimise / re-admit rounds at most.
 ROBUST_ROUNDS = 3
+# Information matrices: largest asymmetry accepted (relative to the largest entry; float noise).
+SYMMETRY_RTOL = 1e-6
+# Nearest positive definite projection: smallest eigenvalue kept, relative to the largest one.
+PD_FLOOR_RATIO = 1e-6
+# Projected g2o edges named in the reader's warning (the rest are counted).
+G2O_EDGES_NAMED = 10
 # Relative error decrease at which the optimisers stop.
 RELATIVE_ERROR_TOL = 1e-5
 ABSOLUTE_ERROR_TOL = 1e-5
@@ -101,13 +107,20 @@ def gtsam_information(information: np.ndarray, planar: bool) -> np.ndarray:
     return 0.5 * (info + info.T)
 
 
-def _noise(information: np.ndarray, planar: bool):
+def _noise(information: np.ndarray, planar: bool, link: Link | None = None):
+    """gtsam noise model of a link's information; OptimizationError naming the link when unusable."""
     import gtsam
 
-    info = gtsam_information(information, planar)
-    if not np.all(np.isfinite(info)) or np.any(np.linalg.eigvalsh(info) <= 0):
+    raw = np.asarray(information, dtype=np.float64)
+    what = f"link {link.from_id} -> {link.to_id}" if link is not None else "link"
+    if not np.all(np.isfinite(raw)):
+        raise OptimizationError(f"{what}: information matrix has NaN or inf values ({raw.tolist()})")
+    if not is_symmetric(raw):
+        raise OptimizationError(f"{what}: information matrix is not symmetric ({raw.tolist()})")
+    info = gtsam_information(raw, planar)
+    if np.any(np.linalg.eigvalsh(info) <= 0):
         raise OptimizationError(
-            f"link information matrix is not positive definite ({info.tolist()}): check the link's "
+            f"{what}: information matrix is not positive definite ({info.tolist()}): check the link's "
             "covariance (every axis needs a finite variance > 0)")
     return gtsam.noiseModel.Gaussian.Information(info)
 
@@ -133,22 +146,47 @@ def _cached(kind: str, array, planar: bool, make):
     return value
 
 
-def _cached_noise(information: np.ndarray, planar: bool):
-    return _cached("noise", information, planar, _noise)
-
-
-def _robust_noise(information: np.ndarray, planar: bool):
-    import gtsam
-
-    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), _cached_noise(information, planar))
+def _cached_noise(link: Link, planar: bool):
+    """The link's noise model (OptimizationError naming the link when its information is unusable)."""
+    return _cached("noise", link.information, planar, lambda information, p: _noise(information, p, link))
 
 
 def _plain_factor(link: Link, planar: bool):
-    return _between(link, planar, _cached_noise(link.information, planar))
+    if not np.all(np.isfinite(link.T_from_to)):
+        raise OptimizationError(f"link {link.from_id} -> {link.to_id}: transform has NaN or inf values")
+    return _between(link, planar, _cached_noise(link, planar))
 
 
 def _robust_factor(link: Link, planar: bool):
-    return _between(link, planar, _cached("robust", link.information, planar, _robust_noise))
+    import gtsam
+
+    robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), _cached_noise(link, planar))
+    return _between(link, planar, robust)
+
+
+def is_symmetric(matrix: np.ndarray) -> bool:
+    """True when ``matrix`` equals its transpose up to :data:`SYMMETRY_RTOL` of its largest entry."""
+    m = np.asarray(matrix, dtype=np.float64)
+    scale = max(float(np.abs(m).max(initial=0.0)), np.finfo(float).tiny)
+    return bool(np.abs(m - m.T).max(initial=0.0) <= SYMMETRY_RTOL * scale)
+
+
+def nearest_positive_definite(matrix: np.ndarray) -> np.ndarray | None:
+    """The positive definite matrix nearest to a symmetric ``matrix`` (Frobenius norm), or None.
+
+    Higham (1988), "Computing a nearest symmetric positive semidefinite matrix": keep the
+    eigenvectors and clip the eigenvalues at 0; here at :data:`PD_FLOOR_RATIO` x the largest one,
+    so the result is strictly positive definite (an axis with no information keeps a tiny one
+    rather than none). None when no eigenvalue is positive: no direction carries information.
+    """
+    m = 0.5 * (np.asarray(matrix, dtype=np.float64) + np.asarray(matrix, dtype=np.float64).T)
+    eigenvalues, vectors = np.linalg.eigh(m)
+    largest = float(eigenvalues.max())
+    if not largest > 0:
+        return None
+    clipped = np.maximum(eigenvalues, PD_FLOOR_RATIO * largest)
+    out = (vectors * clipped) @ vectors.T
+    return 0.5 * (out + out.T)
 
 
 def _between(link: Link, planar: bool, noise):
@@ -348,6 +386,10 @@ def _se3_g2o_scaling() -> np.ndarray:
 def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
     """Read a g2o pose graph (VERTEX_SE2/EDGE_SE2 or VERTEX_SE3:QUAT/EDGE_SE3:QUAT).
 
+    Information matrices are read as g2o and gtsam users expect: one that is symmetric (g2o
+    stores the upper triangle) but not positive definite is replaced by the nearest positive
+    definite matrix (:func:`nearest_positive_definite`), with one warning naming those edges.
+
     Returns:
         ``(poses, links, planar)``: vertex poses (4x4); links with their 6x6 information over
         (x, y, z, roll, pitch, yaw) (planar files: z, roll, pitch get the x information's value,
@@ -356,16 +398,25 @@ def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
         consecutive ids, LOOP_INTRA otherwise.
 
     Raises:
-        OptimizationError: unreadable file, unknown or malformed lines.
+        OptimizationError: unreadable or binary file; unknown, malformed or non-finite lines,
+            an information matrix with no positive eigenvalue (each naming the line); an edge
+            to a vertex the file does not define (naming the edge).
     """
     path = Path(path)
     poses: dict[int, np.ndarray] = {}
-    links: list[Link] = []
+    edges: list[tuple[int, Link]] = []      # (line number, link)
+    projected: list[tuple[int, Link]] = []
     planar: bool | None = None
     try:
-        lines = path.read_text().splitlines()
+        data = path.read_bytes()
     except OSError as exc:
         raise OptimizationError(f"cannot read g2o file {path}: {exc.strerror}") from exc
+    try:
+        lines = data.decode("utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise OptimizationError(
+            f"{path} is not a g2o text file (byte {exc.start} is not text): expected lines such as "
+            "'VERTEX_SE2 id x y theta' and 'EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33'") from exc
     S = _se3_g2o_scaling()
     for number, line in enumerate(lines, 1):
         f = line.split()
@@ -373,41 +424,86 @@ def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
             continue
         tag = f[0]
         try:
-            if tag == "VERTEX_SE2":
-                poses[int(f[1])] = transforms.from_xy_yaw(float(f[2]), float(f[3]), float(f[4]))
-                planar = True
-            elif tag == "EDGE_SE2":
-                i, j = int(f[1]), int(f[2])
-                T = transforms.from_xy_yaw(float(f[3]), float(f[4]), float(f[5]))
-                info3 = _from_upper([float(v) for v in f[6:12]], 3)
-                info = np.eye(6) * info3[0, 0]
-                info[np.ix_(POSE2_FROM_OURS, POSE2_FROM_OURS)] = info3
-                links.append(Link(i, j, _g2o_type(i, j), T, info))
-                planar = True
-            elif tag == "VERTEX_SE3:QUAT":
-                v = [float(x) for x in f[2:9]]
-                poses[int(f[1])] = transforms.from_xyz_quat_xyzw(v[:3], v[3:])
-                planar = False
-            elif tag == "EDGE_SE3:QUAT":
-                i, j = int(f[1]), int(f[2])
-                v = [float(x) for x in f[3:10]]
-                T = transforms.from_xyz_quat_xyzw(v[:3], v[3:])
-                info_g2o = _from_upper([float(x) for x in f[10:31]], 6)
-                links.append(Link(i, j, _g2o_type(i, j), T, S @ info_g2o @ S))
-                planar = False
-            elif tag in ("FIX", "PARAMS_SE3OFFSET"):
+            if tag in ("FIX", "PARAMS_SE3OFFSET"):
                 continue
-            else:
+            if tag not in _G2O_FIELDS:
                 raise ValueError(f"unsupported element {tag}")
+            element_planar = tag.endswith("SE2")
+            if planar is not None and element_planar != planar:
+                raise ValueError(f"{tag} in a file of {'SE2' if planar else 'SE3:QUAT'} elements")
+            planar = element_planar
+            ids, v = _g2o_numbers(f, tag)
+            if tag == "VERTEX_SE2":
+                poses[ids[0]] = transforms.from_xy_yaw(*v)
+            elif tag == "VERTEX_SE3:QUAT":
+                poses[ids[0]] = transforms.from_xyz_quat_xyzw(v[:3], v[3:])
+            else:
+                i, j = ids
+                if tag == "EDGE_SE2":
+                    T = transforms.from_xy_yaw(*v[:3])
+                    info3, was_projected = _g2o_information(_from_upper(v[3:], 3))
+                    info = np.eye(6) * info3[0, 0]
+                    info[np.ix_(POSE2_FROM_OURS, POSE2_FROM_OURS)] = info3
+                else:
+                    T = transforms.from_xyz_quat_xyzw(v[:3], v[3:7])
+                    info_g2o, was_projected = _g2o_information(_from_upper(v[7:], 6))
+                    info = S @ info_g2o @ S
+                link = Link(i, j, _g2o_type(i, j), T, info)
+                edges.append((number, link))
+                if was_projected:
+                    projected.append((number, link))
         except (ValueError, IndexError) as exc:
-            raise OptimizationError(f"{path}:{number}: cannot parse {line[:60]!r}: {exc}") from exc
+            raise OptimizationError(f"{path}:{number}: cannot read {line.strip()[:60]!r}: {exc}") from exc
     if planar is None:
         raise OptimizationError(f"{path} holds no vertex or edge")
-    if not poses and links:
+    links = [link for _, link in edges]
+    if poses:
+        for number, link in edges:
+            missing = [k for k in (link.from_id, link.to_id) if k not in poses]
+            if missing:
+                raise OptimizationError(
+                    f"{path}:{number}: edge {link.from_id} -> {link.to_id} refers to vertex {missing[0]}, "
+                    "which the file does not define (no VERTEX line): fix or remove the edge")
+    elif links:
         # Edges only (CSAIL.g2o): initial guess by chaining the edges from the first vertex.
         first = min(min(l.from_id, l.to_id) for l in links)
         poses = chain_poses(first, transforms.identity(), links)
+    if projected:
+        named = ", ".join(f"line {n} (edge {l.from_id} -> {l.to_id})" for n, l in projected[:G2O_EDGES_NAMED])
+        more = f" and {len(projected) - G2O_EDGES_NAMED} more" if len(projected) > G2O_EDGES_NAMED else ""
+        logger.warning(
+            "%s: %d edge(s) have a symmetric information matrix that is not positive definite, replaced by "
+            "the nearest positive definite matrix (eigenvalues clipped at %g x the largest): %s%s",
+            path, len(projected), PD_FLOOR_RATIO, named, more)
     return poses, links, planar
+
+
+# Numbers after the tag of each g2o element: (ids, floats).
+_G2O_FIELDS = {"VERTEX_SE2": (1, 3), "EDGE_SE2": (2, 3 + 6),
+               "VERTEX_SE3:QUAT": (1, 7), "EDGE_SE3:QUAT": (2, 7 + 21)}
+
+
+def _g2o_numbers(f: list[str], tag: str) -> tuple[list[int], list[float]]:
+    """The ids and the finite values of a g2o line (ValueError naming what is wrong)."""
+    n_ids, n_values = _G2O_FIELDS[tag]
+    if len(f) - 1 != n_ids + n_values:
+        raise ValueError(f"{tag} needs {n_ids + n_values} numbers ({n_ids} id(s), {n_values} values), "
+                         f"found {len(f) - 1}")
+    ids = [int(x) for x in f[1:1 + n_ids]]
+    values = [float(x) for x in f[1 + n_ids:]]
+    if not np.all(np.isfinite(values)):
+        raise ValueError("NaN or inf value")
+    return ids, values
+
+
+def _g2o_information(info: np.ndarray) -> tuple[np.ndarray, bool]:
+    """A g2o edge's (symmetric) information, projected when not positive definite: (matrix, projected)."""
+    if np.all(np.linalg.eigvalsh(info) > 0):
+        return info, False
+    nearest = nearest_positive_definite(info)
+    if nearest is None:
+        raise ValueError("information matrix has no positive eigenvalue (no axis carries information)")
+    return nearest, True
 
 
 def _g2o_type(i: int, j: int) -> LinkType:
@@ -440,9 +536,10 @@ def write_g2o(path, poses: dict[int, np.ndarray], links: list[Link], planar: boo
             values = [*link.T_from_to[:3, 3], *q, *_upper(info)]
             out.append(f"EDGE_SE3:QUAT {link.from_id} {link.to_id} " + " ".join(f"{v:.9g}" for v in values))
     try:
-        Path(path).write_text("\n".join(out) + "\n")
+        files.write_text(path, "\n".join(out) + "\n")
     except OSError as exc:
         raise OptimizationError(f"cannot write g2o file {path}: {exc.strerror}") from exc
 
 
-__all__ = ["OptimizationResult", "gtsam_information", "optimize", "read_g2o", "write_g2o"]
+__all__ = ["OptimizationResult", "gtsam_information", "is_symmetric", "nearest_positive_definite", "optimize",
+           "read_g2o", "write_g2o"]

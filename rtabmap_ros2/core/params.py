@@ -270,11 +270,21 @@ class SyncParams:
     approx_sync: bool = _p(True, "Approximate time: nearest stamps within the tolerance (else equal stamps)")
     tolerance_s: float = _p(0.1, "Largest stamp difference between the messages of one frame", "s")
     queue_size: int = _p(10, "Messages buffered per topic while waiting for the others", "messages")
+    min_valid_depth_ratio: float = _p(
+        0.01, "A frame whose depth image has fewer valid pixels (finite, > 0) than this fraction is dropped "
+        "as bad input (an all-NaN or all-zero depth would give a location with no 3D word)", "ratio")
+    min_valid_scan_ratio: float = _p(
+        0.01, "A frame whose laser scan has fewer valid returns (finite, in [range_min, range_max)) than "
+        "this fraction of its beams is dropped as bad input (at least one return is always required)", "ratio")
 
     def __post_init__(self) -> None:
         _check(self.rate_hz >= 0, "sync.rate_hz", self.rate_hz, ">= 0")
         _check(self.tolerance_s >= 0, "sync.tolerance_s", self.tolerance_s, ">= 0")
         _check(self.queue_size >= 1, "sync.queue_size", self.queue_size, ">= 1")
+        _check(0 <= self.min_valid_depth_ratio <= 1, "sync.min_valid_depth_ratio", self.min_valid_depth_ratio,
+               "in [0, 1]")
+        _check(0 <= self.min_valid_scan_ratio <= 1, "sync.min_valid_scan_ratio", self.min_valid_scan_ratio,
+               "in [0, 1]")
 
 
 @dataclass(frozen=True)

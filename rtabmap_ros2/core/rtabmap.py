@@ -172,7 +172,7 @@ class Rtabmap:
             location_id: id to give the new location (e.g. the image index of ``detect``);
                 default: the next free id. Must be larger than every id already used.
         """
-        frame.validate()
+        frame.validate(self.params.sync)
         if location_id is not None and location_id < self.memory.next_location_id:
             raise SensorDataError(
                 f"location id {location_id} is not larger than the last one ({self.memory.next_location_id - 1})")

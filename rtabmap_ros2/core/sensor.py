@@ -17,6 +17,7 @@ from typing import Iterator, Optional, Protocol, runtime_checkable
 import numpy as np
 
 from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.params import SyncParams
 from rtabmap_ros2.errors import SensorDataError
 
 
@@ -36,11 +37,13 @@ class CameraModel:
         if not (self.fx > 0 and self.fy > 0 and np.isfinite([self.fx, self.fy, self.cx, self.cy]).all()):
             raise SensorDataError(
                 f"camera model has invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}: "
-                "check the camera_info (K must be filled)")
+                "check the camera_info (K must be filled)", "invalid_intrinsics", "camera_info")
         if self.width <= 0 or self.height <= 0:
-            raise SensorDataError(f"camera model has invalid size {self.width}x{self.height}")
+            raise SensorDataError(f"camera model has invalid size {self.width}x{self.height}", "invalid_size",
+                                  "camera_info")
         if not transforms.is_rigid(self.T_base_camera):
-            raise SensorDataError("camera model's T_base_camera is not a rigid 4x4 transform")
+            raise SensorDataError("camera model's T_base_camera is not a rigid 4x4 transform", "invalid_mount",
+                                  "camera_info")
 
     def back_project(self, uv: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
         """Points in the optical frame (N,3, m) of pixels ``uv`` (N,2, px) at depths (N,, m)."""
@@ -77,12 +80,14 @@ class LaserScan:
     def __post_init__(self) -> None:
         r = np.asarray(self.ranges)
         if r.ndim != 1 or r.size == 0:
-            raise SensorDataError(f"laser scan has no ranges (shape {r.shape})")
+            raise SensorDataError(f"laser scan has no ranges (shape {r.shape})", "empty_scan", "scan")
         if not (np.isfinite(self.angle_min) and np.isfinite(self.angle_increment) and self.angle_increment != 0):
             raise SensorDataError(
-                f"laser scan has invalid angles: angle_min={self.angle_min} increment={self.angle_increment}")
+                f"laser scan has invalid angles: angle_min={self.angle_min} increment={self.angle_increment}",
+                "invalid_angles", "scan")
         if not (0 <= self.range_min < self.range_max and np.isfinite(self.range_max)):
-            raise SensorDataError(f"laser scan has invalid range limits [{self.range_min}, {self.range_max}]")
+            raise SensorDataError(f"laser scan has invalid range limits [{self.range_min}, {self.range_max}]",
+                                  "invalid_range_limits", "scan")
 
     @property
     def angles(self) -> np.ndarray:
@@ -131,36 +136,69 @@ class SensorFrame:
     camera: Optional[CameraModel] = None
     scan: Optional[LaserScan] = None
 
-    def validate(self) -> None:
-        """Raise :class:`SensorDataError` naming the problem when the frame cannot be used."""
+    def validate(self, params: Optional[SyncParams] = None) -> None:
+        """Raise :class:`SensorDataError` naming the problem when the frame cannot be used.
+
+        Called where frames are made (the node, the bag reader) and again by ``Rtabmap.process``.
+        The error's ``reason`` names the fault and its ``source`` the part of the frame at fault.
+
+        Args:
+            params: thresholds on valid depth pixels and scan returns (default: SyncParams()).
+        """
+        params = params if params is not None else SyncParams()
         if self.T_odom_base is not None and not transforms.is_rigid(np.asarray(self.T_odom_base), tol=1e-3):
-            raise SensorDataError("odometry pose is not a finite rigid transform (NaN or invalid quaternion?)")
+            raise SensorDataError("odometry pose is not a finite rigid transform (NaN or invalid quaternion?)",
+                                  "invalid_pose", "odom")
         if self.odom_covariance is not None:
             c = np.asarray(self.odom_covariance)
             if c.shape != (6, 6) or not np.all(np.isfinite(c)):
-                raise SensorDataError(f"odometry covariance must be a finite 6x6 matrix, got shape {c.shape}")
+                raise SensorDataError(f"odometry covariance must be a finite 6x6 matrix, got shape {c.shape}",
+                                      "invalid_covariance", "odom")
         if self.rgb is not None:
             if self.rgb.dtype != np.uint8 or self.rgb.ndim != 3 or self.rgb.shape[2] != 3:
                 raise SensorDataError(
-                    f"rgb image must be HxWx3 uint8, got shape {self.rgb.shape} dtype {self.rgb.dtype}")
+                    f"rgb image must be HxWx3 uint8, got shape {self.rgb.shape} dtype {self.rgb.dtype}",
+                    "invalid_image", "rgb")
         if self.depth_m is not None:
-            d = self.depth_m
-            if d.ndim != 2 or d.dtype != np.float32:
-                raise SensorDataError(f"depth must be HxW float32 metres, got shape {d.shape} dtype {d.dtype}")
-            if np.isinf(d).any():
-                raise SensorDataError("depth image contains inf values (use NaN or 0 for invalid depth)")
-            if self.rgb is not None and self.rgb.shape[:2] != d.shape:
-                raise SensorDataError(
-                    f"rgb {self.rgb.shape[1]}x{self.rgb.shape[0]} and depth {d.shape[1]}x{d.shape[0]} sizes differ")
-            if self.camera is None:
-                raise SensorDataError("depth image without a camera model (camera_info missing)")
+            self._validate_depth(params.min_valid_depth_ratio)
         if self.camera is not None and self.rgb is not None:
             if (self.camera.width, self.camera.height) != (self.rgb.shape[1], self.rgb.shape[0]):
                 raise SensorDataError(
                     f"camera_info size {self.camera.width}x{self.camera.height} differs from the image "
-                    f"{self.rgb.shape[1]}x{self.rgb.shape[0]}")
-        if self.scan is not None and not self.scan.valid_mask().any():
-            raise SensorDataError("laser scan has no valid range (empty or all NaN/out of range)")
+                    f"{self.rgb.shape[1]}x{self.rgb.shape[0]}", "size_mismatch", "camera_info")
+        if self.scan is not None:
+            self._validate_scan(params.min_valid_scan_ratio)
+
+    def _validate_depth(self, min_valid_ratio: float) -> None:
+        d = self.depth_m
+        if d.ndim != 2 or d.dtype != np.float32:
+            raise SensorDataError(f"depth must be HxW float32 metres, got shape {d.shape} dtype {d.dtype}",
+                                  "invalid_image", "depth")
+        if np.isinf(d).any():
+            raise SensorDataError("depth image contains inf values (use NaN or 0 for invalid depth)",
+                                  "inf_depth", "depth")
+        if self.rgb is not None and self.rgb.shape[:2] != d.shape:
+            raise SensorDataError(
+                f"rgb {self.rgb.shape[1]}x{self.rgb.shape[0]} and depth {d.shape[1]}x{d.shape[0]} sizes differ",
+                "size_mismatch", "depth")
+        if self.camera is None:
+            raise SensorDataError("depth image without a camera model (camera_info missing)",
+                                  "no_camera_info", "camera_info")
+        with np.errstate(invalid="ignore"):
+            valid = int(np.count_nonzero(d > 0))   # NaN compares False
+        if valid == 0 or valid < min_valid_ratio * d.size:
+            raise SensorDataError(
+                f"depth image has {valid} valid pixels of {d.size} ({100.0 * valid / d.size:.2f} %, fewer than "
+                f"sync.min_valid_depth_ratio = {min_valid_ratio:g}): all NaN or zero?", "no_valid_depth", "depth")
+
+    def _validate_scan(self, min_valid_ratio: float) -> None:
+        valid = int(np.count_nonzero(self.scan.valid_mask()))
+        beams = len(self.scan.ranges)
+        if valid == 0 or valid < min_valid_ratio * beams:
+            raise SensorDataError(
+                f"laser scan has {valid} valid returns of {beams} beams (fewer than sync.min_valid_scan_ratio = "
+                f"{min_valid_ratio:g}; empty, NaN/inf or out of [{self.scan.range_min}, {self.scan.range_max}) m)",
+                "no_valid_scan", "scan")
 
 
 @runtime_checkable

@@ -675,7 +675,7 @@ class BagDataset:
                     T = self._sensor_transform(image_frame_id, self._T_base_camera, DEFAULT_T_BASE_CAMERA,
                                                base_frame)
                     frame.camera = camera_info_from_msg(info.msg, T)
-            frame.validate()
+            frame.validate(self.sync)
         except (SensorDataError, ValueError) as exc:
             where = (f"{current.topic} ({current.msgtype}, encoding "
                      f"{getattr(current.msg, 'encoding', getattr(current.msg, 'format', '-'))!r}) "

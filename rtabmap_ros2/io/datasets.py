@@ -67,6 +67,14 @@ class ImageFolderDataset:
     def __len__(self) -> int:
         return len(self.paths)
 
+    def check_readable(self) -> None:
+        """Raise DatasetError when no image of the folder can be decoded (decodes up to the first
+        readable one)."""
+        if not any(read_rgb(path) is not None for _, path in self.paths):
+            raise DatasetError(
+                f"none of the {len(self.paths)} image files of {self.path} can be read "
+                f"(e.g. {self.paths[0][1].name}): corrupt, empty or not images; nothing to detect")
+
     def items(self) -> Iterator[tuple[int, Path, Optional[SensorFrame]]]:
         """(1-based image index, path, frame or None when the image cannot be read)."""
         for index, path in self.paths:

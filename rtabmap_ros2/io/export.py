@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core import files, transforms
 from rtabmap_ros2.core.database import Database
 from rtabmap_ros2.core.global_map import GlobalMap, global_cloud, global_grid, load_global_map
 from rtabmap_ros2.core.graph import LinkType
@@ -68,6 +68,10 @@ def _stamp_s(stamp_ns: int) -> str:
 def export_global_map(database_path: str | os.PathLike, out_dir: str | os.PathLike, params: Params) -> dict:
     """Optimise the database's global map and write the export files (see the module doc).
 
+    Each file is written under a temporary name in ``out_dir`` and renamed
+    (:mod:`rtabmap_ros2.core.files`): a symlink planted at one of the names is replaced, never
+    followed. When the export fails, the files it wrote and the folders it created are removed.
+
     Args:
         database_path: map database (opened read-only, never modified).
         out_dir: output folder (created if missing; files in it are overwritten).
@@ -80,33 +84,68 @@ def export_global_map(database_path: str | os.PathLike, out_dir: str | os.PathLi
         DatabaseError: missing or invalid database, unwritable output folder.
         OptimizationError: the optimiser failed.
     """
-    t0 = time.perf_counter()
     out = Path(out_dir).expanduser()
+    created = _missing_folders(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise DatabaseError(f"cannot create export folder {out}: {exc.strerror}") from exc
+    written: list[Path] = []
+    try:
+        return _export(database_path, out, params, written)
+    except BaseException:
+        for path in written:
+            path.unlink(missing_ok=True)
+        for folder in created:   # deepest first; only if empty (nothing of anyone else's in it)
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+        raise
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """``folder`` and its ancestors that do not exist yet, deepest first."""
+    missing = []
+    while not folder.exists() and not folder.is_symlink() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    return missing
+
+
+def _export(database_path, out: Path, params: Params, written: list[Path]) -> dict:
+    """The export proper; appends each file to ``written`` once it is complete."""
+    t0 = time.perf_counter()
+
+    def write(name: str, writer, *args) -> None:
+        try:
+            writer(out / name, *args)
+        except OSError as exc:
+            raise DatabaseError(f"cannot write {out / name}: {exc.strerror or exc}") from exc
+        written.append(out / name)
+
     gmap = load_global_map(database_path, params)
     t_optimized = time.perf_counter()
     order = sorted(gmap.poses, key=lambda n: (gmap.stamps_ns[n], n))
-    write_tum(out / "poses.txt", [gmap.stamps_ns[n] for n in order], [gmap.poses[n] for n in order],
-              header="timestamp x y z qx qy qz qw (T_map_base of every node, global map optimised offline)")
-    write_nodes_csv(out / "nodes.csv", gmap, order)
-    write_links_csv(out / "links.csv", gmap)
-    write_g2o(out / "graph.g2o", gmap.poses, gmap.links, gmap.planar)
+    write("poses.txt", write_tum, [gmap.stamps_ns[n] for n in order], [gmap.poses[n] for n in order],
+          "timestamp x y z qx qy qz qw (T_map_base of every node, global map optimised offline)")
+    write("nodes.csv", write_nodes_csv, gmap, order)
+    write("links.csv", write_links_csv, gmap)
+    write("graph.g2o", write_g2o, gmap.poses, gmap.links, gmap.planar)
     with Database(database_path, read_only=True) as db:
         grid = global_grid(gmap, db, params)
         t_grid = time.perf_counter()
         points, colors = global_cloud(gmap, db, params)
     t_cloud = time.perf_counter()
-    write_map_server(out / "map.pgm", out / "map.yaml", grid)
-    write_map_png(out / "map.png", grid, gmap)
-    write_ply(out / "cloud.ply", points, colors)
+    write("map.pgm", write_map_pgm, grid)
+    write("map.yaml", write_map_yaml, grid, "map.pgm")
+    write("map.png", write_map_png, grid, gmap)
+    write("cloud.ply", write_ply, points, colors)
     summary = _summary(gmap, grid, len(points), database_path)
     summary["time_s"] = {"optimization": round(t_optimized - t0, 3), "grid": round(t_grid - t_optimized, 3),
                          "cloud": round(t_cloud - t_grid, 3), "total": round(time.perf_counter() - t0, 3)}
     summary["files"] = list(FILES)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write("summary.json", files.write_text, json.dumps(summary, indent=2) + "\n")
     log.info("exported %d nodes, %d links, %d component(s) to %s", len(gmap.poses), len(gmap.links),
              len(gmap.components), out)
     return summary
@@ -114,7 +153,7 @@ def export_global_map(database_path: str | os.PathLike, out_dir: str | os.PathLi
 
 def write_nodes_csv(path: Path, gmap: GlobalMap, order: list[int]) -> None:
     """``nodes.csv``: one row per posed node (optimised pose in the map frame)."""
-    with open(path, "w", newline="") as f:
+    with files.new_file(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(NODES_COLUMNS)
         for n in order:
@@ -126,7 +165,7 @@ def write_nodes_csv(path: Path, gmap: GlobalMap, order: list[int]) -> None:
 
 def write_links_csv(path: Path, gmap: GlobalMap) -> None:
     """``links.csv``: one row per kept link, ``T_from_to`` as translation + quaternion."""
-    with open(path, "w", newline="") as f:
+    with files.new_file(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(LINKS_COLUMNS)
         for link in sorted(gmap.links, key=lambda l: (l.from_id, l.to_id)):
@@ -136,16 +175,19 @@ def write_links_csv(path: Path, gmap: GlobalMap) -> None:
                         *(f"{v:.9f}" for v in q)])
 
 
-def write_map_server(pgm_path: Path, yaml_path: Path, grid: OccupancyGrid) -> None:
-    """``map.pgm`` (binary P5, map_server grey levels, top row = largest y) and ``map.yaml``."""
+def write_map_pgm(path: Path, grid: OccupancyGrid) -> None:
+    """``map.pgm``: binary P5, map_server grey levels, top row = largest y."""
     image = grid.to_image()
     height, width = image.shape
     header = f"P5\n# rtabmap_ros2 occupancy grid, {grid.resolution} m/cell\n{width} {height}\n255\n"
-    with open(pgm_path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(np.ascontiguousarray(image).tobytes())
-    yaml_path.write_text(
-        f"image: {pgm_path.name}\n"
+    files.write_bytes(path, header.encode("ascii") + np.ascontiguousarray(image).tobytes())
+
+
+def write_map_yaml(path: Path, grid: OccupancyGrid, image_name: str) -> None:
+    """``map.yaml``: map_server's description of the image ``image_name`` (same folder)."""
+    files.write_text(
+        path,
+        f"image: {image_name}\n"
         f"resolution: {grid.resolution:.6g}\n"
         f"origin: [{grid.origin_xy[0]:.6f}, {grid.origin_xy[1]:.6f}, 0.0]\n"
         "negate: 0\n"
@@ -180,8 +222,10 @@ def write_map_png(path: Path, grid: OccupancyGrid, gmap: GlobalMap) -> None:
         for link in gmap.links:
             if link.type is link_type and link.from_id in shown and link.to_id in shown:
                 cv2.line(rgb, pixel(link.from_id), pixel(link.to_id), color, 1, cv2.LINE_8)
-    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise DatabaseError(f"cannot write {path}")
+    ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise DatabaseError(f"cannot PNG-encode {path}")
+    files.write_bytes(path, png.tobytes())
 
 
 def _summary(gmap: GlobalMap, grid: OccupancyGrid, cloud_points: int, database_path) -> dict:
@@ -212,5 +256,5 @@ def _summary(gmap: GlobalMap, grid: OccupancyGrid, cloud_points: int, database_p
     }
 
 
-__all__ = ["FILES", "LINKS_COLUMNS", "NODES_COLUMNS", "export_global_map", "write_links_csv", "write_map_png",
-           "write_map_server", "write_nodes_csv"]
+__all__ = ["FILES", "LINKS_COLUMNS", "NODES_COLUMNS", "export_global_map", "write_links_csv", "write_map_pgm",
+           "write_map_png", "write_map_yaml", "write_nodes_csv"]

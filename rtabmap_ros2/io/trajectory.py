@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core import files, transforms
 from rtabmap_ros2.errors import DatasetError
 
 NS_PER_S = 1_000_000_000
@@ -62,7 +62,7 @@ def write_tum(path: str | os.PathLike, stamps_ns, poses, header: str | None = No
     """
     lines = [f"# {header}"] if header else []
     lines += [tum_line(int(s), np.asarray(T, dtype=float)) for s, T in zip(stamps_ns, poses)]
-    Path(path).write_text("\n".join(lines) + "\n")
+    files.write_text(path, "\n".join(lines) + "\n")
 
 
 def read_tum(path: str | os.PathLike) -> Trajectory:

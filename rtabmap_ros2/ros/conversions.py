@@ -82,6 +82,19 @@ def header(stamp_ns: int, frame_id: str) -> Header:
     return Header(stamp=stamp_from_ns(stamp_ns), frame_id=frame_id)
 
 
+def frame_id_from_header(msg: Any) -> str:
+    """The ``header.frame_id`` of a stamped message; SensorDataError when it is empty.
+
+    An empty frame_id names no sensor frame: its mount cannot be looked up (rtabmap_ros drops
+    such messages too, failing the TF look-up).
+    """
+    frame_id = msg.header.frame_id
+    if not frame_id.strip():
+        raise SensorDataError(f"{type(msg).__name__} message has an empty header.frame_id: set the sensor frame",
+                              "empty_frame_id")
+    return frame_id
+
+
 # -- poses -------------------------------------------------------------------------------------
 def pose_to_msg(T: np.ndarray) -> Pose:
     """``geometry_msgs/Pose`` of a 4x4 rigid transform (m)."""
@@ -116,11 +129,12 @@ def transform_from_msg(msg: TransformStamped) -> np.ndarray:
 def _xyz_quat_to_T(xyz, quat_xyzw, what: str) -> np.ndarray:
     values = np.array([*xyz, *quat_xyzw], dtype=np.float64)
     if not np.all(np.isfinite(values)):
-        raise SensorDataError(f"{what} has NaN or inf values {values.tolist()}: check the odometry source")
+        raise SensorDataError(f"{what} has NaN or inf values {values.tolist()}: check the odometry source",
+                              "non_finite_pose")
     try:
         return transforms.from_xyz_quat_xyzw(values[:3], values[3:])
     except ValueError as exc:
-        raise SensorDataError(f"{what} has an invalid quaternion: {exc}") from exc
+        raise SensorDataError(f"{what} has an invalid quaternion: {exc}", "invalid_quaternion") from exc
 
 
 # -- odometry ----------------------------------------------------------------------------------
@@ -133,7 +147,7 @@ def odometry_from_msg(msg: Odometry) -> tuple[np.ndarray, np.ndarray]:
     T = pose_from_msg(msg.pose.pose)
     cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
     if not np.all(np.isfinite(cov)):
-        raise SensorDataError("odometry covariance has NaN or inf values")
+        raise SensorDataError("odometry covariance has NaN or inf values", "non_finite_covariance")
     return T, cov
 
 
@@ -153,12 +167,14 @@ def _pixel_rows(msg: Image, bytes_per_pixel: int) -> np.ndarray:
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     row_bytes = w * bytes_per_pixel
     if h <= 0 or w <= 0:
-        raise SensorDataError(f"image is empty ({w}x{h})")
+        raise SensorDataError(f"image is empty ({w}x{h})", "empty_image")
     if step < row_bytes:
-        raise SensorDataError(f"image step {step} is smaller than width x pixel size = {row_bytes} bytes")
+        raise SensorDataError(f"image step {step} is smaller than width x pixel size = {row_bytes} bytes",
+                              "bad_step")
     data = np.frombuffer(msg.data, dtype=np.uint8)
     if data.size < step * h:
-        raise SensorDataError(f"image data holds {data.size} bytes, expected step x height = {step * h}")
+        raise SensorDataError(f"image data holds {data.size} bytes, expected step x height = {step * h}",
+                              "short_data")
     return data[:step * h].reshape(h, step)[:, :row_bytes]
 
 
@@ -167,7 +183,7 @@ def image_from_msg(msg: Image) -> np.ndarray:
     encoding = msg.encoding
     if encoding not in _COLOR_ENCODINGS:
         raise SensorDataError(
-            f"image encoding {encoding!r} is not supported: publish rgb8, bgr8 or mono8")
+            f"image encoding {encoding!r} is not supported: publish rgb8, bgr8 or mono8", "encoding")
     channels = _COLOR_ENCODINGS[encoding]
     rows = _pixel_rows(msg, channels)
     h, w = int(msg.height), int(msg.width)
@@ -206,7 +222,8 @@ def depth_from_msg(msg: Image) -> np.ndarray:
     """
     encoding = msg.encoding
     if encoding not in _DEPTH_ENCODINGS:
-        raise SensorDataError(f"depth encoding {encoding!r} is not supported: publish 16UC1 (mm) or 32FC1 (m)")
+        raise SensorDataError(f"depth encoding {encoding!r} is not supported: publish 16UC1 (mm) or 32FC1 (m)",
+                              "encoding")
     dtype = _DEPTH_ENCODINGS[encoding]
     if msg.is_bigendian:
         dtype = dtype.newbyteorder(">")
@@ -220,7 +237,7 @@ def depth_from_msg(msg: Image) -> np.ndarray:
     else:
         if np.isinf(depth).any():
             raise SensorDataError("depth image contains inf values: the driver should publish NaN or 0 "
-                                  "for invalid pixels")
+                                  "for invalid pixels", "inf_depth")
         invalid = depth == 0
     depth[invalid] = np.nan
     return depth
@@ -257,7 +274,7 @@ def camera_model_from_msg(msg: CameraInfo, T_base_camera: np.ndarray | None = No
                            width=int(msg.width), height=int(msg.height),
                            T_base_camera=np.array(DEFAULT_T_BASE_CAMERA) if T_base_camera is None else T_base_camera)
     except SensorDataError as exc:
-        raise SensorDataError(f"camera_info unusable: {exc}") from exc
+        raise SensorDataError(f"camera_info unusable: {exc}", exc.reason) from exc
 
 
 def camera_info_to_msg(camera: CameraModel, stamp_ns: int, frame_id: str) -> CameraInfo:
@@ -276,15 +293,15 @@ def scan_from_msg(msg: LaserScanMsg, T_base_laser: np.ndarray | None = None) -> 
     """Core LaserScan of a ``sensor_msgs/LaserScan``; SensorDataError if empty or without a return."""
     ranges = np.frombuffer(msg.ranges, dtype=np.float32).astype(np.float32)
     if ranges.size == 0:
-        raise SensorDataError("laser scan is empty (no ranges)")
+        raise SensorDataError("laser scan is empty (no ranges)", "empty_scan")
     if not np.isfinite(ranges).any():
-        raise SensorDataError(f"laser scan has no finite range ({ranges.size} beams, all NaN/inf)")
+        raise SensorDataError(f"laser scan has no finite range ({ranges.size} beams, all NaN/inf)", "no_valid_scan")
     scan = LaserScan(ranges=ranges, angle_min=float(msg.angle_min), angle_increment=float(msg.angle_increment),
                      range_min=float(msg.range_min), range_max=float(msg.range_max),
                      **({} if T_base_laser is None else {"T_base_laser": T_base_laser}))
     if not scan.valid_mask().any():
         raise SensorDataError(
-            f"laser scan has no range inside [{scan.range_min}, {scan.range_max}) m")
+            f"laser scan has no range inside [{scan.range_min}, {scan.range_max}) m", "no_valid_scan")
     return scan
 
 

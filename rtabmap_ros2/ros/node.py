@@ -12,7 +12,8 @@ Publications (frame ``map_frame_id``)
     transient local), ``mapGraph`` (visualization_msgs/MarkerArray), ``info``
     (diagnostic_msgs/DiagnosticArray: one status ``rtabmap`` whose key/values are the frame's
     ``Statistics.to_dict()`` plus the node's ``node_latency_ms``, ``node_frames_dropped``,
-    ``node_messages_lost``, ``node_paused``), ``localization_pose`` (geometry_msgs/PoseStamped,
+    ``node_messages_lost``, ``node_paused`` and the dropped bad inputs ``node_dropped:<topic>:<reason>``,
+    ``node_dropped_messages``), ``localization_pose`` (geometry_msgs/PoseStamped,
     localization mode only); TF ``map_frame_id -> odom_frame_id`` when ``tf2_ros`` can be imported.
 Services
     ``get_map`` (nav_msgs/GetMap), ``export_global_map`` (std_srvs/Trigger), and std_srvs/Empty:
@@ -32,8 +33,10 @@ owns the core (SQLite connections belong to the thread that opened them): it cre
 calls (reset, backup...) handed to it as commands. Services run in their own callback group, so a
 long export does not stall the sensors.
 
-Bad input (wrong encoding, sizes that disagree, NaN/inf, empty scans, timestamps going backwards,
-NaN odometry) is logged once per topic and kind, counted, and the frame dropped.
+Bad input (wrong encoding, short data, sizes that disagree, NaN/inf, depth or scans with (almost)
+no valid value, empty frame_id, timestamps going backwards, NaN odometry) is dropped: logged once per
+(topic, reason) and counted on ``info`` as ``node_dropped:<topic>:<reason>``
+(:mod:`rtabmap_ros2.ros.dropped`).
 
 Messages lost in transport (DDS reports gaps in a writer's sequence numbers, the ``message_lost``
 event) are counted per topic in ``messages_lost`` and logged once per topic. With ``qos:=sensor_data``
@@ -76,6 +79,7 @@ from rtabmap_ros2.core.sync import MIN_RESET_JUMP_S, FrameSynchronizer, SyncedSe
 from rtabmap_ros2.errors import RtabmapError, SensorDataError
 from rtabmap_ros2.io.bag import DEFAULT_T_BASE_CAMERA, DEFAULT_T_BASE_LASER
 from rtabmap_ros2.ros import conversions as conv
+from rtabmap_ros2.ros.dropped import DroppedInputs
 from rtabmap_ros2.ros.params import declare_parameters
 
 NODE_NAME = "rtabmap"
@@ -152,6 +156,17 @@ def new_export_folder(export_dir: str | Path, now: Optional[datetime] = None) ->
     return checked_export_path(root, candidate, create=True)
 
 
+def new_backup_path(database_path: Path, now: Optional[datetime] = None) -> Path:
+    """A free ``<stem>-backup-<YYYYmmdd-HHMMSS[-n]>.db`` next to ``database_path`` (nothing, not even
+    a dangling symlink, at that name)."""
+    stamp = (now or datetime.now()).strftime(EXPORT_STAMP_FORMAT)
+    name, n = f"{database_path.stem}-backup-{stamp}", 1
+    candidate = database_path.with_name(f"{name}.db")
+    while candidate.exists() or candidate.is_symlink():
+        candidate, n = database_path.with_name(f"{name}-{n}.db"), n + 1
+    return candidate
+
+
 def checked_export_path(export_dir: str | Path, path: str | Path, create: bool = False) -> Path:
     """``path`` resolved, refusing anything that leaves ``export_dir``."""
     root = Path(export_dir).expanduser().resolve()
@@ -161,6 +176,13 @@ def checked_export_path(export_dir: str | Path, path: str | Path, create: bool =
     if create:
         resolved.mkdir(parents=False, exist_ok=False)
     return resolved
+
+
+def _remove_if_empty(folder: Path) -> None:
+    try:
+        folder.rmdir()
+    except OSError:
+        pass
 
 
 class RtabmapNode(Node):
@@ -178,7 +200,8 @@ class RtabmapNode(Node):
         # Bookkeeping read by tests and benchmarks.
         self.frames_processed = 0
         self.frames_dropped = 0          # pushed out of the full frame queue before being processed
-        self.bad_messages: dict[tuple[str, str], int] = {}
+        self.dropped = DroppedInputs(self.get_logger())
+        self.bad_messages = self.dropped.counts   # (topic, reason) -> dropped inputs
         self.messages_lost: dict[str, int] = {}   # topic -> messages lost in transport (DDS gaps)
         self.latencies_s: deque[float] = deque(maxlen=LATENCY_HISTORY)
         self.last_statistics = None
@@ -283,16 +306,17 @@ class RtabmapNode(Node):
         self._silence_warned.discard(stream)
         stamp_ns = conv.stamp_to_ns(msg.header.stamp)
         try:
+            conv.frame_id_from_header(msg)
             value = convert(msg)
         except SensorDataError as exc:
-            self._bad(topic, "message", str(exc))
+            self._bad(topic, exc.reason, str(exc))
             return
         if stream == "camera_info":
             self._camera = value
             return
         last = self._last_stamp.get(stream)
         if last is not None and stamp_ns <= last and last - stamp_ns < self._reset_jump_ns:
-            self._bad(topic, "stamp", f"timestamp {stamp_ns / NS_PER_S:.9f} s is not after the previous "
+            self._bad(topic, "stamp_not_increasing", f"timestamp {stamp_ns / NS_PER_S:.9f} s is not after the previous "
                                       f"{last / NS_PER_S:.9f} s (going backwards or repeated)")
             return
         # A larger jump back is a clock reset or a looping bag: the synchroniser starts a new timeline.
@@ -311,14 +335,14 @@ class RtabmapNode(Node):
             frame.T_odom_base, frame.odom_covariance = values["odom"]
         if self._needs_camera:
             if self._camera is None:
-                self._bad(self._topics.get("camera_info", "rgb/camera_info"), "missing",
+                self._bad(self._topics.get("camera_info", "rgb/camera_info"), "no_camera_info",
                           "no camera_info received yet: image frames are dropped until one arrives")
                 return
             frame.camera = self._camera
         try:
-            frame.validate()
+            frame.validate(self.params.sync)
         except SensorDataError as exc:
-            self._bad("synchronised set", "frame", str(exc))
+            self._bad_frame(exc)
             return
         if self.paused:
             return
@@ -329,14 +353,13 @@ class RtabmapNode(Node):
             self._frames.append((frame, arrival))
         self._wake.set()
 
-    def _bad(self, topic: str, kind: str, reason: str) -> None:
-        """Log a bad input once per (topic, kind); count every occurrence."""
-        key = (topic, kind)
-        count = self.bad_messages.get(key, 0) + 1
-        self.bad_messages[key] = count
-        if count == 1:
-            self.get_logger().warning(f"dropped bad input on {topic}: {reason} "
-                                      "(further ones of this kind are counted, not logged)")
+    def _bad(self, topic: str, reason: str, message: str) -> None:
+        """Drop a bad input: logged once per (topic, reason), counted on info."""
+        self.dropped.drop(topic, reason, message)
+
+    def _bad_frame(self, exc: SensorDataError) -> None:
+        """Drop a synchronised frame, counted on the topic of the part at fault (``exc.source``)."""
+        self._bad(self._topics.get(exc.source, "synchronised set"), exc.reason, str(exc))
 
     def _check_silence(self) -> None:
         """Warn once per silence when an expected topic has been quiet for topic_timeout_s."""
@@ -402,7 +425,7 @@ class RtabmapNode(Node):
             localization_pose = getattr(self._core, "localization_pose", None)
             localization = self._core.localization_mode
         except SensorDataError as exc:
-            self._bad("synchronised set", "rejected by the core", str(exc))
+            self._bad_frame(exc)
             return
         except RtabmapError as exc:
             self.get_logger().error(f"frame at {frame.stamp_ns / NS_PER_S:.9f} s not processed: {exc}")
@@ -418,7 +441,8 @@ class RtabmapNode(Node):
             self._pub_map.publish(conv.grid_to_msg(grid, stamp, map_frame))
         self._pub_graph.publish(conv.graph_to_markers(local.poses, local.links, stamp, map_frame))
         extra = {"node_latency_ms": round(latency * 1e3, 3), "node_frames_dropped": self.frames_dropped,
-                 "node_messages_lost": sum(self.messages_lost.values()), "node_paused": self.paused}
+                 "node_messages_lost": sum(self.messages_lost.values()), "node_paused": self.paused,
+                 **self.dropped.info()}
         self._pub_info.publish(conv.statistics_to_msg({**stats.to_dict(), **extra}, stamp, map_frame))
         self._tf.sendTransform(conv.transform_to_msg(local.T_map_odom, stamp, map_frame,
                                                      self.params.node.odom_frame_id))
@@ -489,9 +513,12 @@ class RtabmapNode(Node):
         self.get_logger().info(f"reset: {self.database_path} emptied")
 
     def backup(self) -> Path:
-        """Copy the database next to itself as ``<stem>-backup-<YYYYmmdd-HHMMSS>.db``."""
-        stamp = datetime.now().strftime(EXPORT_STAMP_FORMAT)
-        path = self.database_path.with_name(f"{self.database_path.stem}-backup-{stamp}.db")
+        """Copy the database next to itself as ``<stem>-backup-<YYYYmmdd-HHMMSS[-n]>.db``.
+
+        A name already taken (a file, or a symlink someone planted at the predictable name) is
+        skipped, never followed; the core writes the copy under a temporary name and links it.
+        """
+        path = new_backup_path(self.database_path)
         self._in_worker(lambda: self._core.backup(path))
         self.get_logger().info(f"database backed up to {path}")
         return path
@@ -543,9 +570,15 @@ class RtabmapNode(Node):
             from rtabmap_ros2.io.export import export_global_map
 
             folder = new_export_folder(self.params.node.export_dir)
+        except Exception as exc:  # noqa: BLE001 - a service must answer; the node keeps running
+            response.success, response.message = False, f"export failed: {type(exc).__name__}: {exc}"
+            self.get_logger().error(response.message)
+            return response
+        try:
             self._in_worker(lambda: self._core.flush())
             summary = export_global_map(self.database_path, folder, self.params)
         except Exception as exc:  # noqa: BLE001 - a service must answer; the node keeps running
+            _remove_if_empty(folder)   # export_global_map removed the files it wrote
             response.success, response.message = False, f"export failed: {type(exc).__name__}: {exc}"
             self.get_logger().error(response.message)
             return response

@@ -363,9 +363,10 @@ def test_bad_messages_are_dropped_and_the_node_keeps_running(harness, frames):
     small_depth = conv.depth_to_msg(f.depth_m[::2, ::2], frames[2].stamp_ns, "c")   # size mismatch
     t.publish_frame(frames[2], skip=("depth",))
     t.pubs["depth"].publish(small_depth)
-    expected = {"/rgb/image", "/depth/image", "/scan", "/odom", "synchronised set"}
-    assert wait_for(lambda: {topic for topic, _ in node.bad_messages} >= expected), node.bad_messages
-    assert node.bad_messages[("/odom", "stamp")] == 1
+    expected = {("/rgb/image", "encoding"), ("/depth/image", "inf_depth"), ("/scan", "empty_scan"),
+                ("/odom", "non_finite_pose"), ("/odom", "stamp_not_increasing"), ("/depth/image", "size_mismatch")}
+    assert wait_for(lambda: set(node.bad_messages) >= expected), node.bad_messages
+    assert node.bad_messages[("/odom", "stamp_not_increasing")] == 1
     assert node.frames_processed == 1
     info = harness.feed(frames[3])   # still alive
     assert int(info["location_id"]) > 0
@@ -403,7 +404,9 @@ def test_node_subprocess_sigterm_flushes_database(ros_env, context, tmp_path, fr
         assert wait_for(tester.connected, 60)
         for i, f in enumerate(frames[:5]):
             tester.publish_frame(f)
-            assert wait_for(lambda: tester.count("info") > i), f"subprocess node did not report frame {i}"
+            if not wait_for(lambda: tester.count("info") > i):
+                proc.kill()
+                pytest.fail(f"subprocess node did not report frame {i}; its output:\n{proc.communicate()[0]}")
         last_id = int(tester.infos()[-1]["location_id"])
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=60)

@@ -248,3 +248,22 @@ def test_write_refuses_existing_path(tmp_path, frames):
         write_bag(path, frames[:1])
     with pytest.raises(BagError, match="storage"):
         write_bag(tmp_path / "b2", frames, storage="zip")
+
+
+def test_frames_without_valid_depth_or_scan_are_skipped(tmp_path, frames, caplog):
+    """Checked where frames are made (issue 15): the bag reader drops them as the node does."""
+    from dataclasses import replace
+
+    bad = list(frames)
+    bad[1] = replace(frames[1], depth_m=np.full_like(frames[1].depth_m, np.nan))
+    bad[2] = replace(frames[2], depth_m=np.zeros_like(frames[2].depth_m))
+    few = np.full_like(frames[3].scan.ranges, np.inf)
+    few[0] = 2.0   # 1 return of 180 beams: below sync.min_valid_scan_ratio (1 %)
+    bad[3] = replace(frames[3], scan=replace(frames[3].scan, ranges=few))
+    path = write_bag(tmp_path / "bag", bad)
+    with caplog.at_level(logging.WARNING, logger="rtabmap_ros2.io.bag"):
+        got = list(BagDataset(path, sync=ALL))
+    assert [f.stamp_ns for f in got] == [frames[i].stamp_ns for i in (0, 4, 5)]
+    assert "0 valid pixels of" in caplog.text and "1 valid returns of 180" in caplog.text
+    lenient = SyncParams(rate_hz=0.0, min_valid_scan_ratio=0.0)
+    assert len(list(BagDataset(path, sync=lenient))) == 4   # the one-return scan passes at ratio 0

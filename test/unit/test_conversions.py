@@ -269,3 +269,43 @@ def test_statistics_round_trip():
     values = conv.statistics_from_msg(msg)
     assert values == {"location_id": "12", "loop_closure_id": "3", "highest_hypothesis_value": "0.25",
                       "new_map": "false", "timings_ms/bayes": "1.5"}
+
+
+# -- reasons of rejected messages (the node logs once and counts per (topic, reason)) ---------------
+def _reason(convert, msg) -> str:
+    with pytest.raises(SensorDataError) as info:
+        convert(msg)
+    return info.value.reason
+
+
+def test_rejections_name_their_reason(rgb):
+    image = conv.image_to_msg(rgb, 0, "c")
+    image.encoding = "yuv422"
+    assert _reason(conv.image_from_msg, image) == "encoding"
+    image = conv.image_to_msg(rgb, 0, "c")
+    image.data = bytes(image.data)[:-1]
+    assert _reason(conv.image_from_msg, image) == "short_data"
+    image = conv.image_to_msg(rgb, 0, "c")
+    image.step = 4
+    assert _reason(conv.image_from_msg, image) == "bad_step"
+    depth = conv.depth_to_msg(np.full(rgb.shape[:2], np.inf, np.float32), 0, "c", "32FC1")
+    assert _reason(conv.depth_from_msg, depth) == "inf_depth"
+    odom = Odometry()
+    odom.pose.pose.orientation.w = 0.0
+    assert _reason(conv.odometry_from_msg, odom) == "invalid_quaternion"
+    odom.pose.pose.position.x = math.nan
+    assert _reason(conv.odometry_from_msg, odom) == "non_finite_pose"
+    camera = CameraModel(500.0, 500.0, 10.0, 10.0, 20, 20)
+    info = conv.camera_info_to_msg(camera, 0, "c")
+    info.k = np.zeros(9)
+    assert _reason(conv.camera_model_from_msg, info) == "invalid_intrinsics"
+    scan = conv.scan_to_msg(LaserScan(np.ones(10, np.float32), 0.0, 0.1, 0.1, 10.0), 0, "laser")
+    scan.ranges = [math.nan] * 10
+    assert _reason(conv.scan_from_msg, scan) == "no_valid_scan"
+
+
+def test_frame_id_from_header():
+    scan = conv.scan_to_msg(LaserScan(np.ones(10, np.float32), 0.0, 0.1, 0.1, 10.0), 0, "laser")
+    assert conv.frame_id_from_header(scan) == "laser"
+    scan.header.frame_id = " "
+    assert _reason(conv.frame_id_from_header, scan) == "empty_frame_id"

@@ -438,3 +438,14 @@ def test_rgb_encoding_rules(rng):
         encode_rgb(np.zeros((8, 8), np.uint8))
     with pytest.raises(DatabaseError, match="JPEG"):
         decode_rgb(b"not a jpeg")
+
+
+def test_backup_never_follows_a_symlink_at_its_name(db, rng, tmp_path):
+    """Issue 15 case 8: a dangling symlink at the backup name must not receive the database."""
+    db.write(WriteBatch(locations=[(make_signature(rng, 1), None)], words=make_words(rng, 1, 10)))
+    target = tmp_path / "backup.db"
+    target.symlink_to(tmp_path / "stolen.db")
+    with pytest.raises(DatabaseError, match="already exists"):
+        db.backup(target)
+    assert not (tmp_path / "stolen.db").exists() and target.is_symlink()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".backup.db")]   # no temporary left

@@ -100,3 +100,35 @@ def test_cloud_ply_header_matches_body(exported):
 def test_missing_database_raises(tmp_path):
     with pytest.raises(DatabaseError, match="does not exist"):
         export_global_map(tmp_path / "nope.db", tmp_path / "out", Params())
+
+
+def test_planted_symlinks_in_the_export_folder_are_not_followed(tmp_path, rng):
+    """Issue 15 case 7: a symlink planted at each export file name, pointing at a file elsewhere."""
+    make_database(tmp_path / "map.db", rng)
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    out.mkdir()
+    elsewhere.mkdir()
+    for name in FILES:
+        (elsewhere / name).write_text("not yours")
+        (out / name).symlink_to(elsewhere / name)
+    export_global_map(tmp_path / "map.db", out, Params())
+    assert all((elsewhere / name).read_text() == "not yours" for name in FILES)
+    assert all((out / name).is_file() and not (out / name).is_symlink() for name in FILES)
+    assert sorted(p.name for p in out.iterdir()) == sorted(FILES)
+
+
+def test_a_failed_export_removes_what_it_created(tmp_path, rng):
+    make_database(tmp_path / "map.db", rng)
+    # A new folder (and its missing parent) is removed when the export fails.
+    out = tmp_path / "new" / "out"
+    with pytest.raises(DatabaseError):
+        export_global_map(tmp_path / "nope.db", out, Params())
+    assert not (tmp_path / "new").exists()
+    # Failing half-way in an existing folder: the files written are removed, the rest is kept.
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    (existing / "notes.txt").write_text("mine")
+    (existing / "map.png").mkdir()   # map.png cannot be written: the export fails after poses.txt...
+    with pytest.raises(DatabaseError, match="map.png"):
+        export_global_map(tmp_path / "map.db", existing, Params())
+    assert sorted(p.name for p in existing.iterdir()) == ["map.png", "notes.txt"]
