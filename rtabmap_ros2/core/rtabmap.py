@@ -146,7 +146,8 @@ class Rtabmap:
         self._new_loops: list[tuple[Link, tuple[int, int, int]]] = []
         # Verified loop closures that would join two unconnected maps, waiting for agreement.
         self._merge_candidates: list[Link] = []
-        # Last optimised pose of every node that was in a local map (an old map's own frame).
+        # Last optimised pose of every node that was in a local map (an old map's own frame),
+        # kept when the node is transferred to LTM.
         self._map_poses: dict[int, np.ndarray] = {}
         # A map merged this frame: its last optimised poses, moved onto the current one by the
         # confirming loop closure (the initial guess of the merged local map).
@@ -221,9 +222,11 @@ class Rtabmap:
             transferred = self.memory.transfer(protected | self._near_robot(stats.location_id))
             stats.transferred = len(transferred)
             self._wm_changed |= bool(transferred)
+            # Their last optimised poses stay in _map_poses (16 floats a node, as the graph kept
+            # for every node): an old map whose nodes come back from LTM is aligned with them
+            # for a merge (without, the 30-session run never merged session 10 again).
             for node in transferred:
                 self._optimized.pop(node, None)
-                self._map_poses.pop(node, None)
         watch.lap("transfer")
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
