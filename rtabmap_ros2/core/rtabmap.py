@@ -219,6 +219,8 @@ class Rtabmap:
         threshold = self.params.memory.time_threshold_ms
         if threshold > 0 and stats.process_time_ms > threshold:
             protected = self.memory.time_neighbours(hypothesis.location_id) if hypothesis.location_id else set()
+            # Loop closures held for a merge need both ends in WM to be confirmed.
+            protected |= {n for held in self._merge_candidates for n in (held.from_id, held.to_id)}
             transferred = self.memory.transfer(protected | self._near_robot(stats.location_id))
             stats.transferred = len(transferred)
             self._wm_changed |= bool(transferred)
