@@ -6,8 +6,10 @@ database) kept between them. A new map (session) starts with every bag and whene
 is reset inside a bag. Prints a progress bar, one line per session (nodes, WM size, intra /
 inter-session loop closures, max pTime) and a final line; writes the parameters used to
 ``params.yaml`` next to the database, and with ``--stats FILE.csv`` one row per frame
-(:data:`STATS_COLUMNS`, as ``detect``'s ``detections.csv``). Frames with bad sensor data are skipped
-with a warning.
+(:data:`STATS_COLUMNS`, as ``detect``'s ``detections.csv``). Sensor mounts come from each bag's
+``/tf_static``; for a bag without it, ``--set base_to_laser=[x,y,z,roll,pitch,yaw]`` and ``--set
+base_to_camera=[...]`` (the camera's optical frame) give them. Frames with bad sensor data are
+skipped with a warning.
 """
 
 from __future__ import annotations
@@ -194,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from rtabmap_ros2.core.rtabmap import Rtabmap
+    from rtabmap_ros2.core.transforms import from_xyz_rpy
     from rtabmap_ros2.errors import BagError
     from rtabmap_ros2.io.bag import BagDataset
     from rtabmap_ros2.cli.common_args import params_from_args
@@ -205,7 +208,10 @@ def run(args: argparse.Namespace) -> int:
     stats_path = Path(args.stats).expanduser() if args.stats else None
     if stats_path is not None and not stats_path.parent.is_dir():
         raise BagError(f"--stats {stats_path}: folder {stats_path.parent} does not exist")
-    datasets = [(Path(b).name, BagDataset(b, sync=params.sync)) for b in args.bags]
+    # Sensor mounts: the bag's /tf_static; where it has none, --set base_to_laser / base_to_camera.
+    mounts = {"fallback_T_base_laser": from_xyz_rpy(params.node.base_to_laser),
+              "fallback_T_base_camera": from_xyz_rpy(params.node.base_to_camera)}
+    datasets = [(Path(b).name, BagDataset(b, sync=params.sync, **mounts)) for b in args.bags]
     t0 = time.perf_counter()
     with Rtabmap(params, db_path, delete_existing=args.overwrite) as rtabmap, \
             (open(stats_path, "w", newline="") if stats_path else contextlib.nullcontext()) as stats_file:

@@ -25,7 +25,24 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: min(2, CPUs))")
     parser.add_argument("--raw-images", action="store_true",
                         help="raw rgb8/16UC1 images instead of JPEG/PNG (about 1.5 MB per frame)")
+    parser.add_argument("--laser-mount", type=_mount, default=None, metavar="X,Y,Z,ROLL,PITCH,YAW",
+                        help="laser pose on the base (m, rad; level), e.g. 0.2,0,0.3,0,0,0 (default 0,0,0.3,0,0,0)")
+    parser.add_argument("--camera-mount", type=_mount, default=None, metavar="X,Y,Z,ROLL,PITCH,YAW",
+                        help="camera optical frame on the base (m, rad; level: roll -1.5708, pitch 0), "
+                             "default 0.1,0,0.5,-1.5708,0,-1.5708")
+    parser.add_argument("--no-tf-static", action="store_true",
+                        help="do not write /tf_static (the mounts must then be given to map / the node)")
     parser.set_defaults(func=run)
+
+
+def _mount(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.replace(" ", "").split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 6:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected 6 comma-separated numbers x,y,z,roll,pitch,yaw")
+    return values
 
 
 def run(args: argparse.Namespace) -> int:
@@ -33,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
 
     sessions = args.sessions if args.sessions is not None else (2 if args.small else 5)
     summary = simulate(args.out, sessions=sessions, seed=args.seed, small=args.small, jobs=args.jobs,
-                       raw_images=args.raw_images)
+                       raw_images=args.raw_images, laser_mount=args.laser_mount, camera_mount=args.camera_mount,
+                       tf_static=not args.no_tf_static)
     for s in summary.sessions:
         print(f"session {s['session']}: {s['frames']} frames, {s['length_m']:.1f} m, "
               f"{s['revisit_frames']} frames revisit sessions {s['revisited_sessions']}")

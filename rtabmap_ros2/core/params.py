@@ -16,6 +16,7 @@ Unknown names raise :class:`~rtabmap_ros2.errors.ParameterError`; YAML is read w
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -24,6 +25,11 @@ from typing import Any, Iterator, Mapping
 import yaml
 
 from rtabmap_ros2.errors import ParameterError
+
+
+HALF_PI = math.pi / 2
+NODE_QOS = ("auto", "reliable", "sensor_data")
+NODE_IMAGE_TRANSPORTS = ("auto", "raw", "compressed")
 
 
 def _p(default: Any, doc: str, unit: str = "") -> Any:
@@ -221,11 +227,22 @@ class GraphParams:
         "is held until a second one, between places at least this far from the first on both maps, "
         "agrees on the maps' alignment: perceptual aliasing (look-alike posters, symmetric corridors) "
         "repeats over a few metres, a true overlap does not end there (0 = merge on the first)", "m")
-    odom_reset_distance: float = _p(
-        0.05, "A new map starts when odometry jumps back within this distance of the origin after "
-        "moving away from it (odometry reset)", "m")
-    odom_reset_min_travel: float = _p(
-        0.5, "Odometry reset detection: the previous pose must be at least this far from the origin", "m")
+    odom_reset_jump: float = _p(
+        1.0, "Odometry reset detection: a new map starts when odometry moves between two frames by more "
+        "than this plus a plausible speed x the time between them (the first frames after a reset were "
+        "lost, so the first one received is already away from the origin), or by more than this across "
+        "a silence longer than odom_reset_max_gap. RTAB-Map's RGBD/NewMapOdomChangeDistance, which has "
+        "no speed term; 0 = off (a reset is then seen only by an identity pose or a covariance of 9999, "
+        "as in RTAB-Map by default)", "m")
+    odom_reset_speed: float = _p(
+        1.0, "Odometry reset detection: speed the robot is assumed able to reach however slowly it moved so "
+        "far. The plausible speed across a gap is the larger of this and twice the fastest speed seen "
+        "over the last 20 frames, so a fast robot is judged by its own speed (raise it when the robot "
+        "can speed up much while frames are lost)", "m/s")
+    odom_reset_max_gap: float = _p(
+        60.0, "Odometry reset detection: across a silence longer than this (no frame; or a stamp going "
+        "back, a bag replayed) odometry is not trusted to bridge more than odom_reset_jump: a robot "
+        "that moved meanwhile starts a new map, joined again by loop closures", "s")
     odom_default_variance: float = _p(
         1e-3, "Variance of neighbour links when odometry has no covariance", "m^2, rad^2")
     loop_closure_variance: float = _p(1e-3, "Variance of loop closure links (before robust scaling)",
@@ -238,7 +255,9 @@ class GraphParams:
                "in (0, 1)")
         _check(self.optimize_max_error >= 0, "graph.optimize_max_error", self.optimize_max_error, ">= 0")
         _check(self.merge_min_separation >= 0, "graph.merge_min_separation", self.merge_min_separation, ">= 0")
-        _check(self.odom_reset_distance > 0, "graph.odom_reset_distance", self.odom_reset_distance, "> 0")
+        _check(self.odom_reset_jump >= 0, "graph.odom_reset_jump", self.odom_reset_jump, ">= 0")
+        _check(self.odom_reset_speed >= 0, "graph.odom_reset_speed", self.odom_reset_speed, ">= 0")
+        _check(self.odom_reset_max_gap > 0, "graph.odom_reset_max_gap", self.odom_reset_max_gap, "> 0")
         _check(self.odom_default_variance > 0, "graph.odom_default_variance", self.odom_default_variance, "> 0")
         _check(self.loop_closure_variance > 0, "graph.loop_closure_variance", self.loop_closure_variance, "> 0")
 
@@ -300,12 +319,39 @@ class NodeParams:
     subscribe_rgb: bool = _p(True, "Subscribe to rgb/image and rgb/camera_info")
     subscribe_depth: bool = _p(True, "Subscribe to depth/image")
     subscribe_scan: bool = _p(True, "Subscribe to scan")
-    qos: str = _p("sensor_data", "QoS of the subscriptions: sensor_data (best effort) or reliable")
+    qos: str = _p("auto", "QoS of the subscriptions: auto (per topic, reliable when every publisher is reliable, "
+                          "else best effort; re-checked when publishers appear), reliable or sensor_data "
+                          "(best effort)")
+    image_transport: str = _p("auto", "Images: auto (whichever of rgb/image or rgb/image/compressed, depth/image "
+                                      "or depth/image/compressedDepth is published), raw or compressed")
     topic_timeout_s: float = _p(5.0, "Warn once when an expected topic has been silent this long", "s")
+    base_to_laser: tuple = _p((0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+                              "Laser mount [x, y, z, roll, pitch, yaw] in frame_id, used without tf2 (pip "
+                              "install) or when set", "m, rad")
+    base_to_camera: tuple = _p((0.0, 0.0, 0.0, -HALF_PI, 0.0, -HALF_PI),
+                               "Mount of the RGB image's optical frame [x, y, z, roll, pitch, yaw] in frame_id "
+                               "(default: at the base origin, optical z forward), used without tf2 or when set",
+                               "m, rad")
+    wait_for_transform: float = _p(0.2, "With tf2: longest wait for frame_id -> a message's header.frame_id", "s")
+    publish_tf: bool = _p(True, "With tf2: broadcast map_frame_id -> odom_frame_id")
+    tf_publish_rate: float = _p(20.0, "Rate of the map -> odom broadcast (also while paused)", "Hz")
+    tf_delay: float = _p(0.05, "The map -> odom transform is stamped now + tf_delay", "s")
+    localization: bool = _p(False, "Start in localization mode (RTAB-Map: Mem/IncrementalMemory false)")
+    service_timeout_s: float = _p(10.0, "Longest wait of a service for the worker (busy with a frame or a "
+                                        "command) before it answers with an error", "s")
 
     def __post_init__(self) -> None:
-        _check(self.qos in ("sensor_data", "reliable"), "qos", self.qos, "sensor_data or reliable")
+        _check(self.qos in NODE_QOS, "qos", self.qos, " or ".join(NODE_QOS))
+        _check(self.image_transport in NODE_IMAGE_TRANSPORTS, "image_transport", self.image_transport,
+               " or ".join(NODE_IMAGE_TRANSPORTS))
         _check(self.topic_timeout_s > 0, "topic_timeout_s", self.topic_timeout_s, "> 0")
+        for name in ("base_to_laser", "base_to_camera"):
+            value = getattr(self, name)
+            _check(len(value) == 6 and all(math.isfinite(v) for v in value), name, value,
+                   "6 finite numbers [x, y, z, roll, pitch, yaw]")
+        _check(self.wait_for_transform >= 0, "wait_for_transform", self.wait_for_transform, ">= 0")
+        _check(self.tf_publish_rate > 0, "tf_publish_rate", self.tf_publish_rate, "> 0 (publish_tf turns it off)")
+        _check(self.service_timeout_s > 0, "service_timeout_s", self.service_timeout_s, "> 0")
 
 
 @dataclass(frozen=True)
@@ -397,6 +443,7 @@ class Params:
 
 # RTAB-Map's parameter names -> (dotted name, conversion from RTAB-Map's unit to ours).
 RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
+    "Mem/IncrementalMemory": ("node.localization", lambda v: not _to_bool("Mem/IncrementalMemory", v)),
     "Mem/STMSize": ("memory.stm_size", int),
     "Mem/RehearsalSimilarity": ("memory.rehearsal_similarity", float),
     "Mem/RecentWmRatio": ("memory.recent_wm_ratio", float),
@@ -422,6 +469,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Optimizer/Iterations": ("graph.iterations", int),
     "Optimizer/Robust": ("graph.robust", lambda v: _to_bool("Optimizer/Robust", v)),
     "RGBD/OptimizeMaxError": ("graph.optimize_max_error", float),
+    "RGBD/NewMapOdomChangeDistance": ("graph.odom_reset_jump", float),
     "Grid/CellSize": ("grid.resolution", float),
     "Grid/RangeMax": ("grid.range_max", float),
     "Rtabmap/DetectionRate": ("sync.rate_hz", float),

@@ -39,14 +39,20 @@ from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.registration import assemble_scan_map, refine_neighbor_link, register, words_3d
 from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.core.signature import Signature
+from rtabmap_ros2.core.sync import NS_PER_S
 from rtabmap_ros2.errors import OptimizationError, RegistrationError, SensorDataError
 
 log = logging.getLogger(__name__)
 
 # rtabmap_ros convention: an odometry covariance this large means odometry was lost / reset.
 ODOM_RESET_VARIANCE = 9999.0
-# An odometry reset puts the robot back at the origin: within this heading as well (rad).
-ODOM_RESET_MAX_ANGLE = 0.2
+# A reset odometry restarts at identity exactly (RTAB-Map's Transform::isIdentity); this only
+# absorbs round-off of message conversions (m, rad). Integrated odometry never lands this close.
+IDENTITY_TOLERANCE = 1e-6
+# Odometry reset detection: the plausible speed across a gap is at least this many times the
+# fastest speed seen between consecutive frames over the last ODOM_SPEED_WINDOW frames.
+ODOM_SPEED_MARGIN = 2.0
+ODOM_SPEED_WINDOW = 20
 # Optimised poses closer than this are "unchanged" (the local grid is not rebuilt).
 POSE_EPSILON_M = 1e-3
 POSE_EPSILON_RAD = 1e-3
@@ -140,7 +146,11 @@ class Rtabmap:
         self._local_links: list[Link] = []
         self._T_map_odom = transforms.identity()
         self._planar: Optional[bool] = None
+        # Odometry pose, stamp (ns) and "lost" flag of the previous frame with odometry.
         self._last_odom: Optional[np.ndarray] = None
+        self._last_odom_stamp_ns = 0
+        self._last_odom_lost = False
+        self._odom_speeds: deque[float] = deque(maxlen=ODOM_SPEED_WINDOW)  # m/s, between frames
         self._session_nodes = 0
         self._new_map_requested = False
         self._new_loops: list[tuple[Link, tuple[int, int, int]]] = []
@@ -224,11 +234,7 @@ class Rtabmap:
             transferred = self.memory.transfer(protected | self._near_robot(stats.location_id))
             stats.transferred = len(transferred)
             self._wm_changed |= bool(transferred)
-            # Their last optimised poses stay in _map_poses (16 floats a node, as the graph kept
-            # for every node): an old map whose nodes come back from LTM is aligned with them
-            # for a merge (without, the 30-session run never merged session 10 again).
-            for node in transferred:
-                self._optimized.pop(node, None)
+            self._forget(transferred, transferred_to_ltm=True)
         watch.lap("transfer")
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
@@ -306,27 +312,97 @@ class Rtabmap:
 
     def _maybe_start_new_map(self, frame: SensorFrame) -> bool:
         """Multi-session (2014 §III): a new map on request or when odometry was reset."""
-        reset = False
-        pose = frame.T_odom_base
-        if pose is not None and self._last_odom is not None:
-            cov = frame.odom_covariance
-            lost = cov is not None and cov[0, 0] >= ODOM_RESET_VARIANCE
-            back_home = (np.linalg.norm(pose[:3, 3]) < self.params.graph.odom_reset_distance
-                         and transforms.rotation_angle(pose) < ODOM_RESET_MAX_ANGLE)
-            had_moved = np.linalg.norm(self._last_odom[:3, 3]) > self.params.graph.odom_reset_min_travel
-            reset = lost or (back_home and had_moved)
-        self._last_odom = pose
+        reset = self._odometry_reset(frame)
+        self._remember_odometry(frame, reset)
         if not (reset or self._new_map_requested) or not self._session_nodes:
             self._new_map_requested = False
             return False
-        self._new_map_requested = False
         self.memory.flush_stm()
         self.memory.map_id += 1
         self._session_nodes = 0
         self._merge_candidates = []
         self.bayes.reset()
-        log.info("new map %d (%s)", self.memory.map_id, "odometry reset" if reset else "requested")
+        if self._new_map_requested:
+            log.info("new map %d (requested)", self.memory.map_id)
+        else:
+            log.warning("new map %d (%s)", self.memory.map_id, reset)
+        self._new_map_requested = False
         return True
+
+    def _odometry_reset(self, frame: SensorFrame) -> str:
+        """Why ``frame``'s odometry cannot continue the previous frame's ('' when it can).
+
+        Odometry reset detection (2014 §III: a new map starts when odometry is reset), against the
+        previous frame with odometry, so that a neighbour link never joins two odometry frames:
+
+        1. identity after a pose that was not: a reset odometry restarts at identity (RTAB-Map's
+           Rtabmap::process and rtabmap_ros' CoreWrapper, "Odometry is reset (identity pose
+           detected)"), however close to its origin the previous session ended (a robot docking
+           where it started; a robot merely driving back to its start never lands on identity);
+        2. covariance >= 9999 after one that was not (rtabmap_ros' signal for lost / reset);
+        3. a jump that the time between the frames cannot explain: farther than
+           ``graph.odom_reset_jump`` + plausible speed x dt (RTAB-Map's
+           RGBD/NewMapOdomChangeDistance plus a speed term, so frames lost in between are not a
+           reset). This catches a reset whose first frames were lost, the first one received
+           already away from the origin. Plausible speed: ``graph.odom_reset_speed``, or
+           ODOM_SPEED_MARGIN times the fastest seen over the last frames if that is more; judged
+           once the current map has two nodes;
+        4. across a silence longer than ``graph.odom_reset_max_gap`` (or a stamp going back: a
+           bag replayed), a move farther than ``graph.odom_reset_jump``: odometry is not trusted
+           to bridge it.
+        """
+        pose, last = frame.T_odom_base, self._last_odom
+        if pose is None or last is None:
+            return ""
+        if _is_identity(pose) and not _is_identity(last):
+            return "odometry reset: identity pose"
+        if _odometry_lost(frame) and not self._last_odom_lost:
+            return f"odometry reset: covariance >= {ODOM_RESET_VARIANCE:g}"
+        graph = self.params.graph
+        if graph.odom_reset_jump <= 0:
+            return ""
+        jump = float(np.linalg.norm(transforms.relative(last, pose)[:3, 3]))
+        dt = (frame.stamp_ns - self._last_odom_stamp_ns) / NS_PER_S
+        if not 0 <= dt <= graph.odom_reset_max_gap:
+            if jump > graph.odom_reset_jump:
+                return f"odometry reset: it moved {jump:.2f} m across {dt:.4g} s between frames"
+            return ""
+        if self._session_nodes < 2:
+            # A new map's first step is not judged: it is measured. (A robot faster than
+            # odom_reset_speed would otherwise start a new map at every frame.)
+            return ""
+        speed = max(graph.odom_reset_speed, ODOM_SPEED_MARGIN * max(self._odom_speeds, default=0.0))
+        if jump > graph.odom_reset_jump + speed * dt:
+            return f"odometry reset: it jumped {jump:.2f} m in {dt:.4g} s (plausible speed {speed:.2f} m/s)"
+        return ""
+
+    def _remember_odometry(self, frame: SensorFrame, reset: str) -> None:
+        """Keep the frame's odometry for the next reset check, and its speed since the last frame."""
+        pose = frame.T_odom_base
+        if pose is None:
+            return
+        dt = (frame.stamp_ns - self._last_odom_stamp_ns) / NS_PER_S
+        if self._last_odom is not None and not reset and 0 < dt <= self.params.graph.odom_reset_max_gap:
+            self._odom_speeds.append(float(np.linalg.norm(transforms.relative(self._last_odom, pose)[:3, 3])) / dt)
+        self._last_odom = pose
+        self._last_odom_stamp_ns = frame.stamp_ns
+        self._last_odom_lost = _odometry_lost(frame)
+
+    def _forget(self, nodes: list[int], transferred_to_ltm: bool = False) -> None:
+        """Nodes that left WM (transferred to LTM, or merged into the new location by rehearsal)
+        leave the local map's state too: what :meth:`local_map` returns names only nodes in
+        memory, also when the next optimisation fails and the last solution is kept.
+
+        Transferred nodes keep their last optimised pose in ``_map_poses`` (16 floats a node, as
+        the graph kept for every node): an old map whose nodes come back from LTM is aligned with
+        them for a merge."""
+        for node in nodes:
+            self._optimized.pop(node, None)
+            if not transferred_to_ltm:
+                self._map_poses.pop(node, None)
+            self._merged_map_guess.pop(node, None)
+        gone = set(nodes)
+        self._local_links = [link for link in self._local_links if not {link.from_id, link.to_id} & gone]
 
     def _check_planar(self, frame: SensorFrame) -> None:
         """Planar (3 DoF) mode: the parameter, with a laser (2014 §III: the robot is on a plane)."""
@@ -375,6 +451,8 @@ class Rtabmap:
         stats.location_id = sig.id
         # Weight update (§III-B) and STM -> WM (Alg. 1 lines 8-10).
         stats.merged_id = memory.rehearse(sig, new_words)
+        if stats.merged_id:
+            self._forget([stats.merged_id])
         memory.update_stm()
         watch.lap("rehearsal")
         if bad:
@@ -787,6 +865,17 @@ def _rigid(T: np.ndarray, planar: bool) -> np.ndarray:
     out = np.array(T, dtype=float)
     out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     return out
+
+
+def _is_identity(T: np.ndarray) -> bool:
+    """True when the 4x4 ``T`` is identity within IDENTITY_TOLERANCE."""
+    return bool(np.abs(T - np.eye(4)).max() <= IDENTITY_TOLERANCE)
+
+
+def _odometry_lost(frame: SensorFrame) -> bool:
+    """rtabmap_ros' convention: an x variance of 9999 or more means odometry was lost or reset."""
+    cov = frame.odom_covariance
+    return cov is not None and cov[0, 0] >= ODOM_RESET_VARIANCE
 
 
 def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:

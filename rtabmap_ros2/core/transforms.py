@@ -56,6 +56,36 @@ def from_xyz_quat_xyzw(xyz, quat_xyzw) -> np.ndarray:
     return T
 
 
+def from_xyz_rpy(xyz_rpy) -> np.ndarray:
+    """4x4 transform of ``[x, y, z, roll, pitch, yaw]`` (m, rad), ROS's convention (tf2, URDF):
+    R = Rz(yaw) Ry(pitch) Rx(roll), i.e. roll about x, then pitch about y, then yaw about z (fixed axes).
+
+    Raises:
+        ValueError: not 6 finite numbers.
+    """
+    values = np.asarray(xyz_rpy, dtype=np.float64).reshape(-1)
+    if values.size != 6 or not np.all(np.isfinite(values)):
+        raise ValueError(f"expected 6 finite numbers [x, y, z, roll, pitch, yaw], got {list(values)}")
+    cr, sr = np.cos(values[3]), np.sin(values[3])
+    cp, sp = np.cos(values[4]), np.sin(values[4])
+    cy, sy = np.cos(values[5]), np.sin(values[5])
+    T = np.eye(4)
+    T[:3, :3] = [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                 [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                 [-sp, cp * sr, cp * cr]]
+    T[:3, 3] = values[:3]
+    return T
+
+
+def to_xyz_rpy(T: np.ndarray) -> np.ndarray:
+    """``[x, y, z, roll, pitch, yaw]`` of a 4x4 transform (inverse of :func:`from_xyz_rpy`)."""
+    R = T[:3, :3]
+    pitch = np.arctan2(-R[2, 0], np.hypot(R[0, 0], R[1, 0]))
+    roll = np.arctan2(R[2, 1], R[2, 2])
+    yaw = np.arctan2(R[1, 0], R[0, 0])
+    return np.array([T[0, 3], T[1, 3], T[2, 3], roll, pitch, yaw])
+
+
 def quat_xyzw(T: np.ndarray) -> np.ndarray:
     """Unit quaternion (x, y, z, w) of the rotation of a 4x4 transform, with w >= 0."""
     R = T[:3, :3]

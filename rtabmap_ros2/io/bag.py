@@ -74,22 +74,46 @@ TF_STATIC_TOPIC = "/tf_static"
 COMPRESSED_SUFFIX = "/compressed"
 COMPRESSED_DEPTH_SUFFIX = "/compressedDepth"
 JPEG_QUALITY = 90
+JPEG_FORMAT = "rgb8; jpeg compressed bgr8"
+COMPRESSED_DEPTH_FORMAT = "16UC1; compressedDepth png"
 
 # image_transport's compressedDepth payload: a ConfigHeader (int32 format, float32 depthQuantA,
 # float32 depthQuantB) before the PNG.
 COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")
 PNG_MAGIC = b"\x89PNG"
 
-# Image encodings: channels of the 8-bit colour/mono encodings and their conversion to RGB.
+# Colour encodings (sensor_msgs/image_encodings names, lower case): (channels, dtype, cv2 conversion to
+# RGB). 16-bit ones are scaled to 8 bits first (>> 8). Bayer patterns follow cv_bridge's mapping to
+# OpenCV's names (OpenCV names the pattern by the 2x2 block starting at the second row and column).
 _COLOR_ENCODINGS = {
-    "rgb8": (3, None),
-    "bgr8": (3, cv2.COLOR_BGR2RGB),
-    "rgba8": (4, cv2.COLOR_RGBA2RGB),
-    "bgra8": (4, cv2.COLOR_BGRA2RGB),
-    "mono8": (1, cv2.COLOR_GRAY2RGB),
-    "8uc1": (1, cv2.COLOR_GRAY2RGB),
-    "8uc3": (3, cv2.COLOR_BGR2RGB),
+    "rgb8": (3, np.uint8, None),
+    "bgr8": (3, np.uint8, cv2.COLOR_BGR2RGB),
+    "rgba8": (4, np.uint8, cv2.COLOR_RGBA2RGB),
+    "bgra8": (4, np.uint8, cv2.COLOR_BGRA2RGB),
+    "mono8": (1, np.uint8, cv2.COLOR_GRAY2RGB),
+    "8uc1": (1, np.uint8, cv2.COLOR_GRAY2RGB),
+    "8uc3": (3, np.uint8, cv2.COLOR_BGR2RGB),
+    "mono16": (1, np.uint16, cv2.COLOR_GRAY2RGB),
+    "rgb16": (3, np.uint16, None),
+    "bgr16": (3, np.uint16, cv2.COLOR_BGR2RGB),
+    "bayer_rggb8": (1, np.uint8, cv2.COLOR_BayerBG2RGB),
+    "bayer_bggr8": (1, np.uint8, cv2.COLOR_BayerRG2RGB),
+    "bayer_gbrg8": (1, np.uint8, cv2.COLOR_BayerGR2RGB),
+    "bayer_grbg8": (1, np.uint8, cv2.COLOR_BayerGB2RGB),
+    "bayer_rggb16": (1, np.uint16, cv2.COLOR_BayerBG2RGB),
+    "bayer_bggr16": (1, np.uint16, cv2.COLOR_BayerRG2RGB),
+    "bayer_gbrg16": (1, np.uint16, cv2.COLOR_BayerGR2RGB),
+    "bayer_grbg16": (1, np.uint16, cv2.COLOR_BayerGB2RGB),
+    # 4:2:2 YUV, 2 bytes per pixel: "yuv422" is UYVY (cv_bridge), "yuv422_yuy2" / "yuyv" are YUYV.
+    "yuv422": (2, np.uint8, cv2.COLOR_YUV2RGB_UYVY),
+    "uyvy": (2, np.uint8, cv2.COLOR_YUV2RGB_UYVY),
+    "yuv422_yuy2": (2, np.uint8, cv2.COLOR_YUV2RGB_YUYV),
+    "yuyv": (2, np.uint8, cv2.COLOR_YUV2RGB_YUYV),
 }
+# Bayer mosaics: the RGB channel seen at (row % 2, column % 2).
+_BAYER_CHANNELS = {"rggb": ((0, 1), (1, 2)), "bggr": ((2, 1), (1, 0)), "gbrg": ((1, 2), (0, 1)),
+                   "grbg": ((1, 0), (2, 1))}
+_RGB_TO_YUV601 = np.array([[0.257, 0.504, 0.098], [-0.148, -0.291, 0.439], [0.439, -0.368, -0.071]])
 _DEPTH_MM_ENCODINGS = ("16uc1", "mono16")
 _DEPTH_M_ENCODINGS = ("32fc1",)
 
@@ -241,30 +265,91 @@ def image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str = "camera_optical
                  is_bigendian=0, step=w * 3, data=data)
 
 
+def _buffer(data) -> np.ndarray:
+    """uint8 view of a message's ``data`` (numpy array from rosbags, array.array or bytes from rclpy)."""
+    return np.frombuffer(data, dtype=np.uint8)
+
+
 def _pixels(msg, dtype: np.dtype, channels: int) -> np.ndarray:
     """HxWxC (or HxW) view of an Image's data honouring ``step`` and ``is_bigendian``."""
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise SensorDataError(f"image {msg.encoding} is empty ({w}x{h})", "empty_image")
     dt = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
     row_bytes = w * channels * dt.itemsize
-    if step < row_bytes or len(msg.data) < step * h:
-        raise SensorDataError(
-            f"image {w}x{h} {msg.encoding} has step {step} and {len(msg.data)} bytes: expected at least "
-            f"step {row_bytes} and {row_bytes * h} bytes")
-    raw = np.frombuffer(np.asarray(msg.data, dtype=np.uint8), dtype=np.uint8, count=step * h).reshape(h, step)
+    data = _buffer(msg.data)
+    if step < row_bytes:
+        raise SensorDataError(f"image {w}x{h} {msg.encoding} has step {step}, smaller than width x pixel size "
+                              f"= {row_bytes} bytes", "bad_step")
+    if data.size < step * h:
+        raise SensorDataError(f"image {w}x{h} {msg.encoding} holds {data.size} bytes, expected step x height = "
+                              f"{step * h} bytes", "short_data")
+    raw = data[:step * h].reshape(h, step)
     px = raw[:, :row_bytes].copy().view(dt)
     shape = (h, w) if channels == 1 else (h, w, channels)
     return px.reshape(shape).astype(np.dtype(dtype).newbyteorder("="), copy=False)
 
 
 def image_from_msg(msg) -> np.ndarray:
-    """HxWx3 uint8 RGB of a sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8)."""
+    """HxWx3 uint8 RGB of a sensor_msgs/Image in any encoding of ``_COLOR_ENCODINGS``: rgb8, bgr8,
+    rgba8, bgra8, mono8, mono16, rgb16, bgr16, bayer_* (8 and 16 bits), yuv422 (UYVY), yuv422_yuy2 /
+    yuyv (YUYV). Works on rosbags and rclpy messages alike (the node and the bag reader share it)."""
     enc = msg.encoding.lower()
     if enc not in _COLOR_ENCODINGS:
         raise SensorDataError(
-            f"unsupported colour image encoding {msg.encoding!r} (supported: {', '.join(_COLOR_ENCODINGS)})")
-    channels, code = _COLOR_ENCODINGS[enc]
-    px = _pixels(msg, np.uint8, channels)
+            f"unsupported colour image encoding {msg.encoding!r} (supported: {', '.join(_COLOR_ENCODINGS)})",
+            "encoding")
+    channels, dtype, code = _COLOR_ENCODINGS[enc]
+    if channels == 2:   # 4:2:2 YUV: 2 bytes per pixel, decoded by cv2 as a 2-channel image
+        if int(msg.width) % 2:
+            raise SensorDataError(f"{msg.encoding} image width {msg.width} is odd (4:2:2 needs pairs of pixels)",
+                                  "invalid_image")
+        return cv2.cvtColor(_pixels(msg, np.uint8, 2), code)
+    px = _pixels(msg, dtype, channels)
+    if px.dtype == np.uint16:
+        px = (px >> 8).astype(np.uint8)
     return np.ascontiguousarray(px) if code is None else cv2.cvtColor(px, code)
+
+
+def pixels_of_rgb(rgb: np.ndarray, encoding: str) -> np.ndarray:
+    """The pixel array an Image of ``encoding`` carries for an HxWx3 uint8 RGB image (the inverse of
+    :func:`image_from_msg`, exact for rgb8/bgr8/rgba8/bgra8; grey, Bayer and YUV lose colour detail).
+
+    Returns HxW, HxWxC uint8 or uint16 (native byte order); ``tobytes()`` gives the message's data.
+    """
+    enc = encoding.lower()
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    if enc not in _COLOR_ENCODINGS:
+        raise SensorDataError(f"cannot write colour encoding {encoding!r} (supported: {', '.join(_COLOR_ENCODINGS)})")
+    channels, dtype, _ = _COLOR_ENCODINGS[enc]
+    wide = np.dtype(dtype) == np.uint16
+    if enc.startswith("bayer_"):
+        h, w = rgb.shape[:2]
+        pattern = _BAYER_CHANNELS[enc[6:10]]
+        rows, cols = np.indices((h, w))
+        channel = np.asarray(pattern)[rows % 2, cols % 2]
+        out = np.take_along_axis(rgb, channel[..., None], axis=2)[..., 0]
+    elif channels == 2:
+        # BT.601 studio range (Y 16-235), the convention of cv2's YUV 4:2:2 -> RGB conversions.
+        yuv = np.rint(rgb.astype(np.float64) @ _RGB_TO_YUV601.T + (16.0, 128.0, 128.0)).astype(np.int32)
+        y, u, v = yuv[..., 0], yuv[..., 1], yuv[..., 2]
+        u2 = ((u[:, 0::2] + u[:, 1::2] + 1) // 2).repeat(2, axis=1)
+        v2 = ((v[:, 0::2] + v[:, 1::2] + 1) // 2).repeat(2, axis=1)
+        chroma = np.where(np.arange(rgb.shape[1]) % 2 == 0, u2, v2)   # U on even pixels, V on odd
+        pair = (chroma, y) if enc in ("yuv422", "uyvy") else (y, chroma)
+        out = np.stack(pair, axis=2).astype(np.uint8)
+    elif channels == 1:
+        out = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    elif enc in ("rgb8", "rgb16"):
+        out = rgb
+    elif enc in ("bgr8", "8uc3", "bgr16"):
+        out = rgb[..., ::-1]
+    elif enc == "rgba8":
+        out = cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA)
+    else:
+        out = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGRA)
+    out = np.ascontiguousarray(out)
+    return out.astype(np.uint16) * 257 if wide else out
 
 
 def depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str = "camera_optical", ts=None):
@@ -290,45 +375,62 @@ def depth_from_mm(mm: np.ndarray) -> np.ndarray:
 
 
 def depth_from_msg(msg) -> np.ndarray:
-    """HxW float32 depth (m, NaN invalid) of a sensor_msgs/Image 16UC1/mono16 (mm) or 32FC1 (m)."""
+    """HxW float32 depth (m, NaN invalid) of a sensor_msgs/Image 16UC1/mono16 (mm) or 32FC1 (m).
+
+    0 and NaN are invalid (NaN); inf raises SensorDataError (drivers publish NaN or 0 for no depth).
+    """
     enc = msg.encoding.lower()
     if enc in _DEPTH_MM_ENCODINGS:
         return depth_from_mm(_pixels(msg, np.uint16, 1))
     if enc in _DEPTH_M_ENCODINGS:
         d = _pixels(msg, np.float32, 1).copy()
-        d[~np.isfinite(d) | (d <= 0)] = np.nan
+        if np.isinf(d).any():
+            raise SensorDataError("depth image contains inf values: the driver should publish NaN or 0 "
+                                  "for invalid pixels", "inf_depth")
+        d[~(d > 0)] = np.nan
         return d
-    raise SensorDataError(f"unsupported depth image encoding {msg.encoding!r} (supported: 16UC1, mono16, 32FC1)")
+    raise SensorDataError(f"unsupported depth image encoding {msg.encoding!r} (supported: 16UC1, mono16, 32FC1)",
+                          "encoding")
+
+
+def jpeg_of_rgb(rgb: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
+    """JPEG bytes of an HxWx3 uint8 RGB image (the payload of a ``compressed`` CompressedImage)."""
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise SensorDataError(f"cv2 could not JPEG-encode an image of shape {rgb.shape}")
+    return buf.tobytes()
 
 
 def compressed_image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str = "camera_optical",
                             quality: int = JPEG_QUALITY, ts=None):
     """sensor_msgs/CompressedImage (jpeg, image_transport's format string) of an HxWx3 RGB image."""
     ts = ts or typestore()
-    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise SensorDataError(f"cv2 could not JPEG-encode an image of shape {rgb.shape}")
-    return _make(ts, COMPRESSED_TYPE, header=_header(stamp_ns, frame_id, ts),
-                 format="rgb8; jpeg compressed bgr8", data=buf.reshape(-1))
+    return _make(ts, COMPRESSED_TYPE, header=_header(stamp_ns, frame_id, ts), format=JPEG_FORMAT,
+                 data=np.frombuffer(jpeg_of_rgb(rgb, quality), dtype=np.uint8).copy())
 
 
 def compressed_image_from_msg(msg) -> np.ndarray:
     """HxWx3 uint8 RGB of a sensor_msgs/CompressedImage (jpeg or png)."""
-    bgr = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    bgr = cv2.imdecode(_buffer(msg.data), cv2.IMREAD_COLOR)
     if bgr is None:
-        raise SensorDataError(f"cv2 could not decode the compressed image (format {msg.format!r}, {len(msg.data)} bytes)")
+        raise SensorDataError(f"cv2 could not decode the compressed image (format {msg.format!r}, {len(msg.data)} bytes)",
+                              "decode")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def compressed_depth_of_depth(depth_m: np.ndarray) -> bytes:
+    """image_transport's compressedDepth payload (ConfigHeader + 16-bit PNG of millimetres) of a depth (m)."""
+    ok, png = cv2.imencode(".png", depth_to_mm(depth_m))
+    if not ok:
+        raise SensorDataError(f"cv2 could not PNG-encode a depth image of shape {depth_m.shape}")
+    return COMPRESSED_DEPTH_HEADER.pack(0, 0.0, 0.0) + png.tobytes()
 
 
 def compressed_depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str = "camera_optical", ts=None):
     """sensor_msgs/CompressedImage in image_transport's compressedDepth format (16UC1 mm, PNG)."""
     ts = ts or typestore()
-    ok, png = cv2.imencode(".png", depth_to_mm(depth_m))
-    if not ok:
-        raise SensorDataError(f"cv2 could not PNG-encode a depth image of shape {depth_m.shape}")
-    data = np.frombuffer(COMPRESSED_DEPTH_HEADER.pack(0, 0.0, 0.0) + png.tobytes(), dtype=np.uint8)
-    return _make(ts, COMPRESSED_TYPE, header=_header(stamp_ns, frame_id, ts),
-                 format="16UC1; compressedDepth png", data=data.copy())
+    return _make(ts, COMPRESSED_TYPE, header=_header(stamp_ns, frame_id, ts), format=COMPRESSED_DEPTH_FORMAT,
+                 data=np.frombuffer(compressed_depth_of_depth(depth_m), dtype=np.uint8).copy())
 
 
 def compressed_depth_from_msg(msg) -> np.ndarray:
@@ -337,7 +439,7 @@ def compressed_depth_from_msg(msg) -> np.ndarray:
     ``16UC1`` payloads hold millimetres; ``32FC1`` payloads hold quantised inverse depth
     ``q`` with ``depth = depthQuantA / (q - depthQuantB)`` (image_transport's encoding).
     """
-    raw = np.asarray(msg.data, dtype=np.uint8).tobytes()
+    raw = _buffer(msg.data).tobytes()
     enc = msg.format.split(";")[0].strip().lower()
     quant_a = quant_b = 0.0
     if raw[:4] == PNG_MAGIC:
@@ -346,10 +448,11 @@ def compressed_depth_from_msg(msg) -> np.ndarray:
         _, quant_a, quant_b = COMPRESSED_DEPTH_HEADER.unpack_from(raw)
         png = raw[COMPRESSED_DEPTH_HEADER.size:]
     else:
-        raise SensorDataError(f"compressedDepth message (format {msg.format!r}) holds no PNG")
+        raise SensorDataError(f"compressedDepth message (format {msg.format!r}) holds no PNG", "decode")
     img = cv2.imdecode(np.frombuffer(png, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.dtype != np.uint16 or img.ndim != 2:
-        raise SensorDataError(f"compressedDepth message (format {msg.format!r}) has an unreadable 16-bit PNG")
+        raise SensorDataError(f"compressedDepth message (format {msg.format!r}) has an unreadable 16-bit PNG",
+                              "decode")
     if enc in _DEPTH_MM_ENCODINGS:
         return depth_from_mm(img)
     if enc in _DEPTH_M_ENCODINGS:
@@ -357,7 +460,7 @@ def compressed_depth_from_msg(msg) -> np.ndarray:
             d = (quant_a / (img.astype(np.float32) - quant_b)).astype(np.float32)
         d[(img == 0) | ~np.isfinite(d) | (d <= 0)] = np.nan
         return d
-    raise SensorDataError(f"unsupported compressedDepth encoding {enc!r} in format {msg.format!r}")
+    raise SensorDataError(f"unsupported compressedDepth encoding {enc!r} in format {msg.format!r}", "encoding")
 
 
 def camera_info_to_msg(camera: CameraModel, stamp_ns: int, frame_id: str = "camera_optical", ts=None):
@@ -372,10 +475,52 @@ def camera_info_to_msg(camera: CameraModel, stamp_ns: int, frame_id: str = "came
 
 
 def camera_info_from_msg(msg, T_base_camera: np.ndarray = DEFAULT_T_BASE_CAMERA) -> CameraModel:
-    """:class:`CameraModel` of a sensor_msgs/CameraInfo (intrinsics from K; T_base_camera 4x4)."""
+    """:class:`CameraModel` of a sensor_msgs/CameraInfo (T_base_camera 4x4 base -> optical frame).
+
+    Intrinsics from ``K``; when the projection ``P`` is set and differs from ``K`` (a calibrated,
+    distorted camera: ``P`` is the rectified image's), from ``P``: the images a SLAM node uses are the
+    rectified ones (``image_rect``), whose intrinsics are ``P``'s.
+    """
     K = np.asarray(_field(msg, "k"), dtype=np.float64)
-    return CameraModel(float(K[0]), float(K[4]), float(K[2]), float(K[5]), int(msg.width), int(msg.height),
-                       np.array(T_base_camera, dtype=np.float64))
+    P = np.asarray(_field(msg, "p"), dtype=np.float64)
+    fx, fy, cx, cy = float(K[0]), float(K[4]), float(K[2]), float(K[5])
+    calibrated = fx > 0 and fy > 0   # a zero K is an uncalibrated camera: rejected by CameraModel
+    if (calibrated and P.size == 12 and P[0] > 0 and P[5] > 0
+            and not np.allclose((P[0], P[5], P[2], P[6]), (fx, fy, cx, cy))):
+        fx, fy, cx, cy = float(P[0]), float(P[5]), float(P[2]), float(P[6])
+    return CameraModel(fx, fy, cx, cy, int(msg.width), int(msg.height), np.array(T_base_camera, dtype=np.float64))
+
+
+def register_to_rgb(frame: SensorFrame) -> SensorFrame:
+    """The frame with depth and camera model at the RGB image's resolution.
+
+    A depth image registered to the RGB camera but at another resolution, one an integer multiple of
+    the other (e.g. 320x240 with a 640x480 colour image, as RTAB-Map requires), is resized to the RGB
+    size (nearest neighbour: no depth is interpolated across edges), and a camera_info at such a
+    resolution has its intrinsics scaled. Other sizes raise SensorDataError (reason
+    ``size_mismatch``) naming them: an unregistered depth cannot be fixed by scaling.
+    """
+    if frame.rgb is None:
+        return frame
+    h, w = frame.rgb.shape[:2]
+
+    def check(what: str, source: str, width: int, height: int) -> None:
+        big, small = ((w, h), (width, height)) if w >= width else ((width, height), (w, h))
+        factor = big[0] // small[0] if small[0] else 0
+        if not factor or big != (small[0] * factor, small[1] * factor):
+            raise SensorDataError(
+                f"{what} {width}x{height} and rgb {w}x{h}: sizes differ and neither is an integer multiple of "
+                "the other, so the depth cannot be registered by scaling (publish a depth registered to the RGB "
+                "camera, e.g. depth_registered/image_rect)", "size_mismatch", source)
+
+    if frame.depth_m is not None and frame.depth_m.ndim == 2 and frame.depth_m.shape != (h, w):
+        dh, dw = frame.depth_m.shape
+        check("depth", "depth", dw, dh)
+        frame.depth_m = cv2.resize(frame.depth_m, (w, h), interpolation=cv2.INTER_NEAREST)
+    if frame.camera is not None and (frame.camera.width, frame.camera.height) != (w, h):
+        check("camera_info", "camera_info", frame.camera.width, frame.camera.height)
+        frame.camera = frame.camera.scaled(w, h)
+    return frame
 
 
 def transform_to_msg(T_parent_child: np.ndarray, parent: str, child: str, stamp_ns: int, ts=None):
@@ -481,7 +626,9 @@ class BagDataset:
 
     def __init__(self, path, topics: TopicNames = TopicNames(), sync: SyncParams = SyncParams(),
                  use: Optional[Iterable[str]] = None, T_base_camera: Optional[np.ndarray] = None,
-                 T_base_laser: Optional[np.ndarray] = None, base_frame: Optional[str] = None) -> None:
+                 T_base_laser: Optional[np.ndarray] = None, base_frame: Optional[str] = None,
+                 fallback_T_base_camera: Optional[np.ndarray] = None,
+                 fallback_T_base_laser: Optional[np.ndarray] = None) -> None:
         """Open ``path`` and check its topics.
 
         Args:
@@ -494,6 +641,8 @@ class BagDataset:
                 if it links the frames, else :data:`DEFAULT_T_BASE_CAMERA` / :data:`DEFAULT_T_BASE_LASER`.
             base_frame: robot base frame for /tf_static look-ups; default: the odometry's
                 child_frame_id, else ``base_link``.
+            fallback_T_base_camera, fallback_T_base_laser: used instead of the module defaults when
+                /tf_static does not give the mount (``map --set base_to_camera=[...]``).
         """
         self.path = Path(path)
         self.topics = topics
@@ -501,6 +650,10 @@ class BagDataset:
         self._T_base_camera = None if T_base_camera is None else np.asarray(T_base_camera, dtype=np.float64)
         self._T_base_laser = None if T_base_laser is None else np.asarray(T_base_laser, dtype=np.float64)
         self._base_frame = base_frame
+        self._fallback_camera = DEFAULT_T_BASE_CAMERA if fallback_T_base_camera is None else np.asarray(
+            fallback_T_base_camera, dtype=np.float64)
+        self._fallback_laser = DEFAULT_T_BASE_LASER if fallback_T_base_laser is None else np.asarray(
+            fallback_T_base_laser, dtype=np.float64)
         self._len: Optional[int] = None
         reader = _open_reader(self.path)
         try:
@@ -649,7 +802,7 @@ class BagDataset:
             scan = synced.values.get("scan")
             if scan is not None:
                 current = scan
-                T = self._sensor_transform(scan.msg.header.frame_id, self._T_base_laser, DEFAULT_T_BASE_LASER,
+                T = self._sensor_transform(scan.msg.header.frame_id, self._T_base_laser, self._fallback_laser,
                                            base_frame)
                 frame.scan = scan_from_msg(scan.msg, T)
             rgb = synced.values.get("rgb")
@@ -672,10 +825,10 @@ class BagDataset:
                 else:
                     current = info
                     image_frame_id = (rgb or depth).msg.header.frame_id or info.msg.header.frame_id
-                    T = self._sensor_transform(image_frame_id, self._T_base_camera, DEFAULT_T_BASE_CAMERA,
+                    T = self._sensor_transform(image_frame_id, self._T_base_camera, self._fallback_camera,
                                                base_frame)
                     frame.camera = camera_info_from_msg(info.msg, T)
-            frame.validate(self.sync)
+            register_to_rgb(frame).validate(self.sync)
         except (SensorDataError, ValueError) as exc:
             where = (f"{current.topic} ({current.msgtype}, encoding "
                      f"{getattr(current.msg, 'encoding', getattr(current.msg, 'format', '-'))!r}) "
@@ -706,17 +859,19 @@ class _MessageSink:
 
 
 def _write_frames(sink: _MessageSink, frames: Iterable[SensorFrame], topics: TopicNames, frame_ids: FrameIds,
-                  rgb_format: str, depth_format: str) -> int:
+                  rgb_format: str, depth_format: str, tf_static: bool = True) -> int:
     ts = sink.ts
     tf_written: set[str] = set()
     n = 0
     for frame in frames:
         t = int(frame.stamp_ns)
         static = []
-        if frame.camera is not None and frame_ids.camera not in tf_written:
+        if not tf_static:
+            pass
+        elif frame.camera is not None and frame_ids.camera not in tf_written:
             static.append(transform_to_msg(frame.camera.T_base_camera, frame_ids.base, frame_ids.camera, t, ts))
             tf_written.add(frame_ids.camera)
-        if frame.scan is not None and frame_ids.laser not in tf_written:
+        if tf_static and frame.scan is not None and frame_ids.laser not in tf_written:
             static.append(transform_to_msg(frame.scan.T_base_laser, frame_ids.base, frame_ids.laser, t, ts))
             tf_written.add(frame_ids.laser)
         if static:
@@ -752,14 +907,16 @@ def _check_formats(rgb_format: str, depth_format: str) -> None:
 
 
 def write_bag(path, frames: Iterable[SensorFrame], topics: TopicNames = TopicNames(), storage: str = "sqlite3",
-              frame_ids: FrameIds = FrameIds(), rgb_format: str = "raw", depth_format: str = "raw") -> Path:
+              frame_ids: FrameIds = FrameIds(), rgb_format: str = "raw", depth_format: str = "raw",
+              tf_static: bool = True) -> Path:
     """Write frames to a new ROS 2 bag folder (Jazzy typestore); return its path.
 
     Per frame, with the frame's stamp as header and bag time: Odometry (pose + covariance), LaserScan,
     CameraInfo (K, P, D = 0), rgb as Image rgb8 on ``topics.rgb`` or, with ``rgb_format="jpeg"``,
     CompressedImage on ``<rgb>/compressed``; depth as Image 16UC1 (mm) on ``topics.depth`` or, with
     ``depth_format="png"``, compressedDepth on ``<depth>/compressedDepth``. ``/tf_static``
-    (TFMessage) holds base -> camera optical and base -> laser from the first frame carrying each.
+    (TFMessage) holds base -> camera optical and base -> laser from the first frame carrying each
+    (not written with ``tf_static=False``).
 
     Args:
         path: bag folder to create (must not exist).
@@ -778,7 +935,7 @@ def write_bag(path, frames: Iterable[SensorFrame], topics: TopicNames = TopicNam
     ts = typestore()
     with Writer(path, version=Writer.VERSION_LATEST, storage_plugin=plugins[storage]) as writer:
         n = _write_frames(_MessageSink(writer, ts, ts.serialize_cdr, ros1=False), frames, topics, frame_ids,
-                          rgb_format, depth_format)
+                          rgb_format, depth_format, tf_static)
     logger.info("wrote %d frames to %s (%s)", n, path, storage)
     return path
 

@@ -18,14 +18,13 @@ from __future__ import annotations
 import array
 from typing import Any, Iterable, Mapping
 
-import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Transform, TransformStamped, Vector3
 from nav_msgs.msg import OccupancyGrid as OccupancyGridMsg
 from nav_msgs.msg import Odometry, Path
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from sensor_msgs.msg import LaserScan as LaserScanMsg
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
@@ -35,7 +34,7 @@ from rtabmap_ros2.core.graph import Link, LinkType
 from rtabmap_ros2.core.params import flatten
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 from rtabmap_ros2.errors import SensorDataError
-from rtabmap_ros2.io.bag import DEFAULT_T_BASE_CAMERA as _BAG_DEFAULT_T_BASE_CAMERA
+from rtabmap_ros2.io import bag
 
 NS_PER_S = 1_000_000_000
 MM_PER_M = 1000.0
@@ -43,11 +42,8 @@ MM_PER_M = 1000.0
 # Base -> camera optical frame when a CameraInfo arrives without an extrinsic calibration (no tf2
 # here to read one): the bag reader's default, the optical frame at the base origin with the
 # standard optical rotation (optical z forward = base x).
-DEFAULT_T_BASE_CAMERA = _BAG_DEFAULT_T_BASE_CAMERA
+DEFAULT_T_BASE_CAMERA = bag.DEFAULT_T_BASE_CAMERA
 
-# Colour encodings accepted on rgb/image: bytes per pixel and the channel order to get RGB.
-_COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1}
-_DEPTH_ENCODINGS = {"16UC1": np.dtype("<u2"), "mono16": np.dtype("<u2"), "32FC1": np.dtype("<f4")}
 
 # Marker appearance (RViz): node sphere diameter and link line width (m), RGBA colours.
 NODE_MARKER_SCALE = 0.05
@@ -162,85 +158,42 @@ def odometry_to_msg(T_odom_base: np.ndarray, stamp_ns: int, odom_frame: str = "o
 
 
 # -- images ------------------------------------------------------------------------------------
-def _pixel_rows(msg: Image, bytes_per_pixel: int) -> np.ndarray:
-    """(H, W*bytes_per_pixel) uint8 view of an image's pixels, dropping each row's padding."""
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    row_bytes = w * bytes_per_pixel
-    if h <= 0 or w <= 0:
-        raise SensorDataError(f"image is empty ({w}x{h})", "empty_image")
-    if step < row_bytes:
-        raise SensorDataError(f"image step {step} is smaller than width x pixel size = {row_bytes} bytes",
-                              "bad_step")
-    data = np.frombuffer(msg.data, dtype=np.uint8)
-    if data.size < step * h:
-        raise SensorDataError(f"image data holds {data.size} bytes, expected step x height = {step * h}",
-                              "short_data")
-    return data[:step * h].reshape(h, step)[:, :row_bytes]
-
-
-def image_from_msg(msg: Image) -> np.ndarray:
-    """RGB HxWx3 uint8 image (a copy) of a ``sensor_msgs/Image`` in rgb8, bgr8 or mono8."""
-    encoding = msg.encoding
-    if encoding not in _COLOR_ENCODINGS:
-        raise SensorDataError(
-            f"image encoding {encoding!r} is not supported: publish rgb8, bgr8 or mono8", "encoding")
-    channels = _COLOR_ENCODINGS[encoding]
-    rows = _pixel_rows(msg, channels)
-    h, w = int(msg.height), int(msg.width)
-    if encoding == "rgb8":
-        return rows.reshape(h, w, 3).copy()
-    if encoding == "bgr8":
-        # cv2 swaps channels ~25x faster than a numpy [..., ::-1] copy (bench/bench_node.py).
-        return cv2.cvtColor(rows.reshape(h, w, 3), cv2.COLOR_BGR2RGB)
-    return np.repeat(rows.reshape(h, w, 1), 3, axis=2)
+# Decoding is the bag reader's (rtabmap_ros2.io.bag), one implementation for rclpy and rosbags
+# messages: raw Images in every encoding drivers publish, JPEG/PNG ``compressed`` and
+# image_transport's ``compressedDepth``.
+image_from_msg = bag.image_from_msg
+depth_from_msg = bag.depth_from_msg
+compressed_image_from_msg = bag.compressed_image_from_msg
+compressed_depth_from_msg = bag.compressed_depth_from_msg
 
 
 def image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str, encoding: str = "rgb8") -> Image:
-    """``sensor_msgs/Image`` of an RGB HxWx3 uint8 image, written as rgb8, bgr8 or mono8."""
+    """``sensor_msgs/Image`` of an RGB HxWx3 uint8 image, written in ``encoding`` (any encoding
+    :func:`image_from_msg` reads: rgb8, bgr8, rgba8, bgra8, mono8, mono16, bayer_*, yuv422, yuyv...)."""
     rgb = np.asarray(rgb)
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise SensorDataError(f"image must be HxWx3 uint8 RGB, got shape {rgb.shape} dtype {rgb.dtype}")
-    if encoding == "rgb8":
-        pixels = rgb
-    elif encoding == "bgr8":
-        pixels = rgb[:, :, ::-1]
-    elif encoding == "mono8":
-        pixels = rgb.mean(axis=2).round().astype(np.uint8)
-    else:
-        raise SensorDataError(f"image_to_msg: encoding {encoding!r} is not one of rgb8, bgr8, mono8")
+    pixels = bag.pixels_of_rgb(rgb, encoding)
+    pixels = pixels.astype(pixels.dtype.newbyteorder("<"), copy=False)   # is_bigendian = 0
     h, w = rgb.shape[:2]
     msg = Image(header=header(stamp_ns, frame_id), height=h, width=w, encoding=encoding,
-                is_bigendian=0, step=w * _COLOR_ENCODINGS[encoding])
-    msg.data = np.ascontiguousarray(pixels).tobytes()
+                is_bigendian=0, step=pixels.strides[0])
+    msg.data = pixels.tobytes()
     return msg
 
 
-def depth_from_msg(msg: Image) -> np.ndarray:
-    """HxW float32 depth (m) of a 16UC1 (mm) or 32FC1 (m) ``sensor_msgs/Image``; 0 -> NaN.
+def compressed_image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str) -> CompressedImage:
+    """``sensor_msgs/CompressedImage`` (JPEG, image_transport's ``compressed``) of an RGB image."""
+    msg = CompressedImage(header=header(stamp_ns, frame_id), format=bag.JPEG_FORMAT)
+    msg.data = bag.jpeg_of_rgb(rgb)
+    return msg
 
-    Inf in a 32FC1 image raises SensorDataError (the issue lists it as bad input); NaN stays NaN.
-    """
-    encoding = msg.encoding
-    if encoding not in _DEPTH_ENCODINGS:
-        raise SensorDataError(f"depth encoding {encoding!r} is not supported: publish 16UC1 (mm) or 32FC1 (m)",
-                              "encoding")
-    dtype = _DEPTH_ENCODINGS[encoding]
-    if msg.is_bigendian:
-        dtype = dtype.newbyteorder(">")
-    h, w = int(msg.height), int(msg.width)
-    rows = _pixel_rows(msg, dtype.itemsize)
-    raw = np.ascontiguousarray(rows).view(dtype).reshape(h, w)
-    depth = raw.astype(np.float32)
-    if dtype.kind == "u":
-        invalid = raw == 0
-        depth *= np.float32(1.0 / MM_PER_M)
-    else:
-        if np.isinf(depth).any():
-            raise SensorDataError("depth image contains inf values: the driver should publish NaN or 0 "
-                                  "for invalid pixels", "inf_depth")
-        invalid = depth == 0
-    depth[invalid] = np.nan
-    return depth
+
+def compressed_depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str) -> CompressedImage:
+    """``sensor_msgs/CompressedImage`` in image_transport's ``compressedDepth`` format of a depth (m)."""
+    msg = CompressedImage(header=header(stamp_ns, frame_id), format=bag.COMPRESSED_DEPTH_FORMAT)
+    msg.data = bag.compressed_depth_of_depth(depth_m)
+    return msg
 
 
 def depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str, encoding: str = "16UC1") -> Image:
@@ -264,15 +217,12 @@ def depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str, encoding: st
 
 # -- camera info -------------------------------------------------------------------------------
 def camera_model_from_msg(msg: CameraInfo, T_base_camera: np.ndarray | None = None) -> CameraModel:
-    """Pinhole model of a ``sensor_msgs/CameraInfo`` (K; distortion is assumed rectified).
+    """Pinhole model of a ``sensor_msgs/CameraInfo`` (the bag reader's: K, or P when it differs).
 
     ``T_base_camera`` (4x4 base -> optical frame) defaults to :data:`DEFAULT_T_BASE_CAMERA`.
     """
-    k = np.asarray(msg.k, dtype=np.float64)
     try:
-        return CameraModel(fx=float(k[0]), fy=float(k[4]), cx=float(k[2]), cy=float(k[5]),
-                           width=int(msg.width), height=int(msg.height),
-                           T_base_camera=np.array(DEFAULT_T_BASE_CAMERA) if T_base_camera is None else T_base_camera)
+        return bag.camera_info_from_msg(msg, DEFAULT_T_BASE_CAMERA if T_base_camera is None else T_base_camera)
     except SensorDataError as exc:
         raise SensorDataError(f"camera_info unusable: {exc}", exc.reason) from exc
 

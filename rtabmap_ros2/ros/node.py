@@ -2,25 +2,36 @@
 
 Interface (issue 5; relative names, so namespaces and remapping work):
 
-Subscriptions (QoS ``sensor_data`` by default, ``qos:=reliable`` otherwise)
-    ``odom`` (nav_msgs/Odometry), ``scan`` (sensor_msgs/LaserScan), ``rgb/image`` and
-    ``depth/image`` (sensor_msgs/Image: rgb8/bgr8/mono8; 16UC1 mm or 32FC1 m),
-    ``rgb/camera_info`` (sensor_msgs/CameraInfo). ``subscribe_scan``, ``subscribe_rgb`` (image and
-    camera_info) and ``subscribe_depth`` turn them off.
+Subscriptions (QoS ``qos``: ``auto`` per topic from its publishers, ``reliable`` or ``sensor_data``;
+see :mod:`rtabmap_ros2.ros.subscriptions`)
+    ``odom`` (nav_msgs/Odometry), ``scan`` (sensor_msgs/LaserScan), ``rgb/image`` (sensor_msgs/Image:
+    rgb8, bgr8, rgba8, bgra8, mono8, mono16, bayer_*, yuv422, yuyv) or ``rgb/image/compressed``,
+    ``depth/image`` (16UC1 mm or 32FC1 m) or ``depth/image/compressedDepth`` (``image_transport``
+    ``auto``: whichever is published; ``raw``; ``compressed``), ``rgb/camera_info``
+    (sensor_msgs/CameraInfo; P's intrinsics when P differs from K). A depth image at another resolution
+    than the RGB one (same aspect ratio) is registered by scaling. ``subscribe_scan``,
+    ``subscribe_rgb`` (image and camera_info) and ``subscribe_depth`` turn them off.
+Sensor mounts and TF (:mod:`rtabmap_ros2.ros.frames`)
+    with ``tf2_ros`` importable: ``frame_id`` -> each message's ``header.frame_id`` from tf2 (waiting up
+    to ``wait_for_transform``), and ``map_frame_id -> odom_frame_id`` broadcast at ``tf_publish_rate``
+    stamped now + ``tf_delay`` (``publish_tf``); without it: ``base_to_laser`` / ``base_to_camera``.
 Publications (frame ``map_frame_id``)
     ``mapPath`` (nav_msgs/Path: the optimised local map), ``map`` (nav_msgs/OccupancyGrid,
     transient local), ``mapGraph`` (visualization_msgs/MarkerArray), ``info``
     (diagnostic_msgs/DiagnosticArray: one status ``rtabmap`` whose key/values are the frame's
     ``Statistics.to_dict()`` plus the node's ``node_latency_ms``, ``node_frames_dropped``,
-    ``node_messages_lost``, ``node_paused`` and the dropped bad inputs ``node_dropped:<topic>:<reason>``,
-    ``node_dropped_messages``), ``localization_pose`` (geometry_msgs/PoseStamped,
-    localization mode only); TF ``map_frame_id -> odom_frame_id`` when ``tf2_ros`` can be imported.
+    ``node_messages_lost``, ``node_paused``, ``node_frame_errors`` and the dropped bad inputs
+    ``node_dropped:<topic>:<reason>``, ``node_dropped_messages``), ``localization_pose``
+    (geometry_msgs/PoseStamped, localization mode only).
 Services
     ``get_map`` (nav_msgs/GetMap), ``export_global_map`` (std_srvs/Trigger), and std_srvs/Empty:
     ``publish_map``, ``reset``, ``pause``, ``resume``, ``trigger_new_map``, ``backup``,
     ``set_mode_localization``, ``set_mode_mapping``.
+    Every service answers within ``service_timeout_s``: when the worker is busy longer, with an error
+    (Trigger's message, else a log line) instead of waiting.
 Parameters
-    every field of :class:`~rtabmap_ros2.core.params.Params` (see :mod:`rtabmap_ros2.ros.params`).
+    every field of :class:`~rtabmap_ros2.core.params.Params` (see :mod:`rtabmap_ros2.ros.params`), and
+    RTAB-Map's names (``-p Mem/STMSize:=10``); ``Mem/IncrementalMemory:=false`` starts in localization.
 
 Threads: sensor callbacks (one mutually exclusive group) convert each message and feed the one
 :class:`~rtabmap_ros2.core.sync.FrameSynchronizer`; a completed set becomes a ``SensorFrame`` put
@@ -34,15 +45,22 @@ calls (reset, backup...) handed to it as commands. Services run in their own cal
 long export does not stall the sensors.
 
 Bad input (wrong encoding, short data, sizes that disagree, NaN/inf, depth or scans with (almost)
-no valid value, empty frame_id, timestamps going backwards, NaN odometry) is dropped: logged once per
-(topic, reason) and counted on ``info`` as ``node_dropped:<topic>:<reason>``
+no valid value, empty frame_id, timestamps going backwards, NaN odometry, a missing transform) is
+dropped: logged once per (topic, reason) and counted on ``info`` as ``node_dropped:<topic>:<reason>``
 (:mod:`rtabmap_ros2.ros.dropped`).
 
+Errors while processing a frame: any unexpected exception (a gtsam, numpy, sqlite or OpenCV error) is
+logged once per kind (type and place) with its traceback, counted in ``frame_errors``, and the frame
+dropped; the worker goes on. An unrecoverable one (the database cannot be written: DatabaseError,
+sqlite3 errors, a full or read-only disk; MemoryError) is logged, the worker stops and the process
+exits with status :data:`EXIT_UNRECOVERABLE`, so a launch file's ``respawn`` restarts the node.
+
 Messages lost in transport (DDS reports gaps in a writer's sequence numbers, the ``message_lost``
-event) are counted per topic in ``messages_lost`` and logged once per topic. With ``qos:=sensor_data``
-(best effort), Fast DDS loses large images under CPU load even between two processes on one
-machine (measured by ``bench/bench_node.py``); ``qos:=reliable`` receives every frame from a
-reliable publisher such as ``rtabmap-ros2 play``.
+event) are counted per topic in ``messages_lost`` and logged once per topic. With best effort
+(``qos:=sensor_data``, or ``auto`` facing a best-effort publisher), Fast DDS loses large images under
+CPU load even between two processes on one machine (measured by ``bench/bench_node.py``); ``auto``
+(the default) subscribes reliably to reliable publishers such as ``rtabmap-ros2 play`` and receives
+every frame.
 
 Shutdown: rclpy (7.1) installs handlers for SIGINT and SIGTERM that stop ``spin``; ``main``'s
 ``finally`` then destroys the node, which joins the worker (finishing the frame in flight) and
@@ -51,9 +69,12 @@ flushes and closes the database.
 
 from __future__ import annotations
 
+import errno
+import sqlite3
 import sys
 import threading
 import time
+import traceback
 from collections import deque
 from datetime import datetime
 from pathlib import Path
@@ -69,23 +90,27 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image, LaserScan
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, LaserScan
 from std_srvs.srv import Empty, Trigger
 from visualization_msgs.msg import MarkerArray
 
 from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.core.sync import MIN_RESET_JUMP_S, FrameSynchronizer, SyncedSet
-from rtabmap_ros2.errors import RtabmapError, SensorDataError
-from rtabmap_ros2.io.bag import DEFAULT_T_BASE_CAMERA, DEFAULT_T_BASE_LASER
+from rtabmap_ros2.errors import DatabaseError, RtabmapError, SensorDataError
+from rtabmap_ros2.io.bag import register_to_rgb
 from rtabmap_ros2.ros import conversions as conv
+from rtabmap_ros2.ros.frames import CAMERA, LASER, MapOdomBroadcaster, SensorMounts, import_tf2
 from rtabmap_ros2.ros.dropped import DroppedInputs
 from rtabmap_ros2.ros.params import declare_parameters
+from rtabmap_ros2.ros.subscriptions import GRAPH_CHECK_PERIOD_S, Candidate, StreamSubscriptions
 
 NODE_NAME = "rtabmap"
 NS_PER_S = 1_000_000_000
-# Depth of the reliable publishers and of the subscriptions with qos:=reliable.
+# Depth of the reliable publishers.
 QUEUE_DEPTH = 10
+# Exit status of main() after an unrecoverable error (database unwritable): launch's respawn restarts.
+EXIT_UNRECOVERABLE = 3
 # How often the silent-topic check runs (s).
 SILENCE_CHECK_PERIOD_S = 1.0
 # Synchronised frames waiting for the worker. A reliable Fast DDS writer resends a lost sample at its
@@ -100,23 +125,23 @@ LATENCY_HISTORY = 10000
 EXPORT_STAMP_FORMAT = "%Y%m%d-%H%M%S"
 
 
-class _NoBroadcaster:
-    """Stand-in for tf2_ros.TransformBroadcaster when tf2_ros is not importable."""
-
-    def sendTransform(self, transform) -> None:  # noqa: N802 - tf2_ros's spelling
-        pass
-
-
 class _Command:
     """A core call handed to the worker thread, with its result or error."""
 
-    def __init__(self, fn: Callable[[], Any]) -> None:
+    def __init__(self, fn: Callable[[], Any], name: str = "command") -> None:
         self.fn = fn
+        self.name = name
         self._done = threading.Event()
         self._value: Any = None
         self._error: Optional[BaseException] = None
+        self._lock = threading.Lock()
+        self._state = "queued"   # queued -> running -> done, or queued -> cancelled
 
     def run(self) -> None:
+        with self._lock:
+            if self._state == "cancelled":
+                return
+            self._state = "running"
         try:
             self._value = self.fn()
         except Exception as exc:  # noqa: BLE001 - re-raised in the calling thread
@@ -124,21 +149,38 @@ class _Command:
         finally:
             self._done.set()
 
-    def result(self) -> Any:
-        self._done.wait()
+    def result(self, timeout_s: Optional[float] = None) -> Any:
+        """The command's value (or its error raised here); RtabmapError after ``timeout_s``.
+
+        A command still queued at the timeout is cancelled (it will not run later); one already
+        running finishes in the worker, its result unused.
+        """
+        if not self._done.wait(timeout_s):
+            with self._lock:
+                cancelled = self._state == "queued"
+                if cancelled:
+                    self._state = "cancelled"
+            raise RtabmapError(
+                f"{self.name}: the rtabmap worker did not answer within {timeout_s:g} s (busy with a frame or "
+                f"another command); " + ("not done, try again" if cancelled else "it finishes in the background"))
         if self._error is not None:
             raise self._error
         return self._value
 
 
-def _tf_broadcaster(node: Node):
-    try:
-        from tf2_ros import TransformBroadcaster
-    except ImportError:
-        node.get_logger().info("tf2_ros is not importable (no ROS 2 workspace): the map -> odom "
-                               "transform is not broadcast; the map is still published on mapPath/map")
-        return _NoBroadcaster()
-    return TransformBroadcaster(node)
+def unrecoverable(exc: BaseException) -> bool:
+    """True for errors the node cannot go on after: the database cannot be written (DatabaseError,
+    sqlite3 errors), the disk is full or read-only, memory is exhausted."""
+    if isinstance(exc, (DatabaseError, sqlite3.Error, MemoryError)):
+        return True
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EROFS, errno.EDQUOT)
+
+
+def error_kind(exc: BaseException) -> str:
+    """``Type at file.py:line`` (the innermost frame): errors of one kind are logged once."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
+    return f"{type(exc).__name__}{where}"
 
 
 def new_export_folder(export_dir: str | Path, now: Optional[datetime] = None) -> Path:
@@ -204,6 +246,8 @@ class RtabmapNode(Node):
         self.bad_messages = self.dropped.counts   # (topic, reason) -> dropped inputs
         self.messages_lost: dict[str, int] = {}   # topic -> messages lost in transport (DDS gaps)
         self.latencies_s: deque[float] = deque(maxlen=LATENCY_HISTORY)
+        self.frame_errors: dict[str, int] = {}   # unexpected errors while processing, per kind
+        self.fatal_error: Optional[BaseException] = None
         self.last_statistics = None
         self.paused = False
 
@@ -229,6 +273,7 @@ class RtabmapNode(Node):
         self._worker_lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._destroyed = False
         self._core = None
         self._worker = threading.Thread(target=self._work, args=(Rtabmap, p.delete_db_on_start),
                                         name="rtabmap_worker", daemon=True)
@@ -244,35 +289,63 @@ class RtabmapNode(Node):
 
         self._sensor_group = MutuallyExclusiveCallbackGroup()
         self._service_group = MutuallyExclusiveCallbackGroup()
+        tf2 = import_tf2()
+        self.mounts = SensorMounts(self, p, tf2)
+        self.get_logger().info(self.mounts.describe())
+        self.tf_broadcaster = (MapOdomBroadcaster(self, p, tf2, MutuallyExclusiveCallbackGroup())
+                               if tf2 is not None and p.publish_tf else None)
         self._subscribe(p)
         self._advertise()
-        self._tf = _tf_broadcaster(self)
 
     # -- subscriptions -------------------------------------------------------------------------
     def _subscribe(self, p) -> None:
-        qos = (qos_profile_sensor_data if p.qos == "sensor_data"
-               else QoSProfile(depth=QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE))
-        self._topics: dict[str, str] = {}   # stream -> resolved topic name
         self._last_arrival: dict[str, float] = {}
         self._silence_warned: set[str] = set()
         self._start_time = time.monotonic()
-        table: list[tuple[str, str, type, Callable]] = [("odom", "odom", Odometry, conv.odometry_from_msg)]
+        self.subscriptions_ = StreamSubscriptions(self, p.qos, self._create_sensor_subscription,
+                                                  self.get_logger().info)
+        subs = self.subscriptions_
+        subs.add("odom", [Candidate(self.resolve_topic_name("odom"), Odometry, conv.odometry_from_msg)])
         if p.subscribe_scan:
-            table.append(("scan", "scan", LaserScan,
-                          lambda m: conv.scan_from_msg(m, DEFAULT_T_BASE_LASER.copy())))
+            subs.add("scan", [Candidate(self.resolve_topic_name("scan"), LaserScan, self._scan_from_msg)])
         if p.subscribe_rgb:
-            table.append(("rgb", "rgb/image", Image, conv.image_from_msg))
-            table.append(("camera_info", "rgb/camera_info", CameraInfo,
-                          lambda m: conv.camera_model_from_msg(m, DEFAULT_T_BASE_CAMERA.copy())))
+            subs.add("rgb", self._image_candidates("rgb/image", "/compressed", conv.image_from_msg,
+                                                   conv.compressed_image_from_msg, p.image_transport))
+            subs.add("camera_info", [Candidate(self.resolve_topic_name("rgb/camera_info"), CameraInfo,
+                                               self._camera_from_msg)])
         if p.subscribe_depth:
-            table.append(("depth", "depth/image", Image, conv.depth_from_msg))
-        for stream, topic, msg_type, convert in table:
-            sub = self._create_sensor_subscription(msg_type, topic, self._callback(stream, convert), qos)
-            self._topics[stream] = sub.topic_name
+            subs.add("depth", self._image_candidates("depth/image", "/compressedDepth", conv.depth_from_msg,
+                                                     conv.compressed_depth_from_msg, p.image_transport))
+        subs.refresh()
+        if subs.needs_graph:
+            self.create_timer(GRAPH_CHECK_PERIOD_S, subs.refresh, callback_group=self._sensor_group)
         self.create_timer(SILENCE_CHECK_PERIOD_S, self._check_silence, callback_group=self._sensor_group)
 
-    def _create_sensor_subscription(self, msg_type: type, topic: str, callback: Callable, qos):
+    @property
+    def _topics(self) -> dict[str, str]:
+        """Stream -> the topic it is read from (its preferred one until a publisher appears)."""
+        return {stream: self.subscriptions_.topic(stream) for stream in self.subscriptions_.candidates}
+
+    def _image_candidates(self, raw: str, suffix: str, raw_convert: Callable, compressed_convert: Callable,
+                          transport: str) -> list[Candidate]:
+        """raw and/or image_transport's compressed variant of an image topic (the resolved raw name + suffix)."""
+        name = self.resolve_topic_name(raw)
+        candidates = {"raw": Candidate(name, Image, raw_convert),
+                      "compressed": Candidate(name + suffix, CompressedImage, compressed_convert, "compressed")}
+        return list(candidates.values()) if transport == "auto" else [candidates[transport]]
+
+    def _scan_from_msg(self, msg: LaserScan):
+        T = self.mounts.T_base(LASER, msg.header.frame_id, conv.stamp_to_ns(msg.header.stamp))
+        return conv.scan_from_msg(msg, T)
+
+    def _camera_from_msg(self, msg: CameraInfo):
+        T = self.mounts.T_base(CAMERA, msg.header.frame_id, conv.stamp_to_ns(msg.header.stamp))
+        return conv.camera_model_from_msg(msg, T)
+
+    def _create_sensor_subscription(self, stream: str, candidate: Candidate, qos):
         """A subscription in the sensor group that also reports messages lost in transport."""
+        msg_type, topic = candidate.msg_type, candidate.topic
+        callback = self._callback(stream, candidate.convert)
         events = SubscriptionEventCallbacks(message_lost=self._lost_callback(topic))
         try:
             sub = self.create_subscription(msg_type, topic, callback, qos, callback_group=self._sensor_group,
@@ -287,9 +360,9 @@ class RtabmapNode(Node):
             count = self.messages_lost.get(name, 0) + info.total_count_change
             self.messages_lost[name] = count
             if count == info.total_count_change:
-                hint = (" With qos:=sensor_data (best effort) large messages are lost under load: "
-                        "use qos:=reliable if the publisher is reliable (rtabmap-ros2 play is)."
-                        if self.params.node.qos == "sensor_data" else "")
+                hint = (" With best effort (qos sensor_data, or auto with a best-effort publisher) large "
+                        "messages are lost under load: publish reliably (rtabmap-ros2 play does) with qos auto."
+                        if self.params.node.qos != "reliable" else "")
                 self.get_logger().warning(f"{info.total_count_change} message(s) lost in transport on {name} "
                                           f"(further losses are counted, not logged).{hint}")
         return on_lost
@@ -300,7 +373,7 @@ class RtabmapNode(Node):
         return on_message
 
     def _on_message(self, stream: str, msg, convert: Callable) -> None:
-        topic = self._topics[stream]
+        topic = self.subscriptions_.topic(stream)
         arrival = time.monotonic()
         self._last_arrival[stream] = arrival
         self._silence_warned.discard(stream)
@@ -340,7 +413,7 @@ class RtabmapNode(Node):
                 return
             frame.camera = self._camera
         try:
-            frame.validate(self.params.sync)
+            register_to_rgb(frame).validate(self.params.sync)
         except SensorDataError as exc:
             self._bad_frame(exc)
             return
@@ -373,10 +446,14 @@ class RtabmapNode(Node):
             return
         self._silence_warned.update(silent)
         arrived = [self._topics[s] for s in self._topics if now - self._last_arrival.get(s, -1e18) < timeout]
+        unpublished = [s for s in silent if s not in self.subscriptions_.current]
         self.get_logger().warning(
-            f"no message for {timeout:g} s on {', '.join(self._topics[s] for s in silent)}; "
-            f"receiving: {', '.join(arrived) if arrived else 'nothing'}. Check the topic names, remapping "
-            f"and QoS (parameter qos: sensor_data or reliable), or turn the input off (subscribe_*).")
+            f"no message for {timeout:g} s on {', '.join(self.subscriptions_.topics_text(s) for s in silent)}; "
+            f"receiving: {', '.join(arrived) if arrived else 'nothing'}"
+            + (f"; no publisher at all on {', '.join(self.subscriptions_.topics_text(s) for s in unpublished)}"
+               if unpublished else "")
+            + ". Check the topic names, remapping, image_transport and QoS (parameter qos: auto, reliable or "
+              "sensor_data), or turn the input off (subscribe_*).")
 
     # -- worker --------------------------------------------------------------------------------
     def _work(self, rtabmap_cls, delete_existing: bool) -> None:
@@ -388,6 +465,9 @@ class RtabmapNode(Node):
             return
         finally:
             self._core_ready.set()
+        if self.params.node.localization:
+            self._core.localization_mode = True
+            self.get_logger().info("localization mode (Mem/IncrementalMemory false): no node is added to the map")
         try:
             while True:
                 self._wake.wait(WORKER_POLL_S)
@@ -400,24 +480,62 @@ class RtabmapNode(Node):
                     command.run()
                 if item is not None and not self._stop.is_set():
                     self._process(*item)
+                if self.fatal_error is not None:
+                    break
                 if self._stop.is_set():
                     with self._worker_lock:
                         if not self._commands:
                             break
         finally:
-            self._core.close()
+            try:
+                self._core.close()
+            except Exception as exc:  # noqa: BLE001 - already failing (unwritable database); say it, end
+                self.get_logger().error(f"closing {self.database_path} failed: {type(exc).__name__}: {exc}")
 
-    def _in_worker(self, fn: Callable[[], Any]) -> Any:
-        """Run ``fn`` (a core call) in the worker thread and return its result or raise its error."""
-        command = _Command(fn)
+    def _in_worker(self, fn: Callable[[], Any], name: str = "command") -> Any:
+        """Run ``fn`` (a core call) in the worker thread and return its result or raise its error
+        (RtabmapError when the worker does not take it within ``service_timeout_s``)."""
+        command = _Command(fn, name)
         with self._worker_lock:
+            if self.fatal_error is not None:
+                raise RtabmapError(f"the rtabmap worker stopped on an unrecoverable error: {self.fatal_error}")
             if self._stop.is_set() or not self._worker.is_alive():
                 raise RtabmapError("the rtabmap worker has stopped (node shutting down)")
             self._commands.append(command)
         self._wake.set()
-        return command.result()
+        return command.result(self.params.node.service_timeout_s)
 
     def _process(self, frame: SensorFrame, arrival: float) -> None:
+        """Process one frame; any error is contained here (the worker goes on) unless unrecoverable."""
+        try:
+            self._process_frame(frame, arrival)
+        except Exception as exc:  # noqa: BLE001 - the worker must survive a gtsam/numpy/sqlite/cv2 error
+            if unrecoverable(exc):
+                self._fail(exc)
+            else:
+                self._frame_error(frame, exc)
+
+    def _frame_error(self, frame: SensorFrame, exc: Exception) -> None:
+        """An unexpected error in one frame: counted per kind, logged once per kind with its traceback."""
+        kind = error_kind(exc)
+        count = self.frame_errors.get(kind, 0) + 1
+        self.frame_errors[kind] = count
+        if count == 1:
+            self.get_logger().error(
+                f"frame at {frame.stamp_ns / NS_PER_S:.9f} s dropped: unexpected {kind}: {exc} (the node goes on; "
+                f"further errors of this kind are counted in info's node_frame_errors, not logged)\n"
+                + "".join(traceback.format_exception(exc)).rstrip())
+
+    def _fail(self, exc: BaseException) -> None:
+        """An unrecoverable error: log it, stop the worker and end the process (main exits non-zero)."""
+        self.fatal_error = exc
+        self._stop.set()
+        self.get_logger().fatal(
+            f"unrecoverable error, the node stops (exit status {EXIT_UNRECOVERABLE}; a launch respawn restarts "
+            f"it): {type(exc).__name__}: {exc}\n" + "".join(traceback.format_exception(exc)).rstrip())
+        self.context.try_shutdown()
+
+    def _process_frame(self, frame: SensorFrame, arrival: float) -> None:
         try:
             stats = self._core.process(frame)
             local = self._core.local_map()
@@ -427,6 +545,8 @@ class RtabmapNode(Node):
         except SensorDataError as exc:
             self._bad_frame(exc)
             return
+        except DatabaseError:
+            raise
         except RtabmapError as exc:
             self.get_logger().error(f"frame at {frame.stamp_ns / NS_PER_S:.9f} s not processed: {exc}")
             return
@@ -442,10 +562,10 @@ class RtabmapNode(Node):
         self._pub_graph.publish(conv.graph_to_markers(local.poses, local.links, stamp, map_frame))
         extra = {"node_latency_ms": round(latency * 1e3, 3), "node_frames_dropped": self.frames_dropped,
                  "node_messages_lost": sum(self.messages_lost.values()), "node_paused": self.paused,
-                 **self.dropped.info()}
+                 "node_frame_errors": sum(self.frame_errors.values()), **self.dropped.info()}
         self._pub_info.publish(conv.statistics_to_msg({**stats.to_dict(), **extra}, stamp, map_frame))
-        self._tf.sendTransform(conv.transform_to_msg(local.T_map_odom, stamp, map_frame,
-                                                     self.params.node.odom_frame_id))
+        if self.tf_broadcaster is not None:
+            self.tf_broadcaster.update(local.T_map_odom)
         if localization and localization_pose is not None:
             self._pub_localization.publish(
                 PoseStamped(header=conv.header(stamp, map_frame), pose=conv.pose_to_msg(localization_pose)))
@@ -489,12 +609,12 @@ class RtabmapNode(Node):
         self.get_logger().info("paused: incoming frames are ignored" if paused else "resumed")
 
     def _set_localization(self, on: bool) -> None:
-        self._in_worker(lambda: setattr(self._core, "localization_mode", on))
+        self._in_worker(lambda: setattr(self._core, "localization_mode", on), "set_mode")
         self.get_logger().info("localization mode: no node is added to the map" if on else "mapping mode")
 
     def trigger_new_map(self) -> int:
         """Start a new map (session) at the next frame; returns its id."""
-        map_id = self._in_worker(lambda: self._core.trigger_new_map())
+        map_id = self._in_worker(lambda: self._core.trigger_new_map(), "trigger_new_map")
         self.get_logger().info(f"new map {map_id} starts at the next frame")
         return map_id
 
@@ -502,7 +622,7 @@ class RtabmapNode(Node):
         """Forget everything (database deleted and restarted) and clear the published map."""
         with self._worker_lock:
             self._frames.clear()
-        self._in_worker(lambda: self._core.reset())
+        self._in_worker(lambda: self._core.reset(), "reset")
         with self._sync_lock:
             self._sync.reset()
         self._last_stamp.clear()
@@ -519,7 +639,7 @@ class RtabmapNode(Node):
         skipped, never followed; the core writes the copy under a temporary name and links it.
         """
         path = new_backup_path(self.database_path)
-        self._in_worker(lambda: self._core.backup(path))
+        self._in_worker(lambda: self._core.backup(path), "backup")
         self.get_logger().info(f"database backed up to {path}")
         return path
 
@@ -529,7 +649,7 @@ class RtabmapNode(Node):
         from rtabmap_ros2.core.database import Database
         from rtabmap_ros2.core.global_map import global_grid, load_global_map
 
-        self._in_worker(lambda: self._core.flush())
+        self._in_worker(lambda: self._core.flush(), "flush")
         global_map = load_global_map(self.database_path, self.params)
         grid = None
         if global_map.poses:
@@ -575,7 +695,7 @@ class RtabmapNode(Node):
             self.get_logger().error(response.message)
             return response
         try:
-            self._in_worker(lambda: self._core.flush())
+            self._in_worker(lambda: self._core.flush(), "flush")
             summary = export_global_map(self.database_path, folder, self.params)
         except Exception as exc:  # noqa: BLE001 - a service must answer; the node keeps running
             _remove_if_empty(folder)   # export_global_map removed the files it wrote
@@ -590,8 +710,9 @@ class RtabmapNode(Node):
     # -- shutdown ------------------------------------------------------------------------------
     def destroy_node(self) -> None:
         """Finish the frame in flight, flush and close the database, then destroy the node."""
-        if self._stop.is_set():
+        if self._destroyed:
             return
+        self._destroyed = True
         self._stop.set()
         self._wake.set()
         self._worker.join()   # finishes the frame in flight, then flushes and closes the database
@@ -606,13 +727,15 @@ def main(args: Optional[list[str]] = None) -> None:
     node = None
     try:
         node = RtabmapNode()
-        executor = MultiThreadedExecutor(num_threads=2)
+        # Sensors, services, and tf2's listener (served while a sensor callback waits for a transform).
+        executor = MultiThreadedExecutor(num_threads=3)
         executor.add_node(node)
         executor.spin()
     except KeyboardInterrupt:
         pass
     except ExternalShutdownException:
-        sys.exit(1)
+        if node is None or node.fatal_error is None:
+            sys.exit(1)
     except RtabmapError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
@@ -620,6 +743,8 @@ def main(args: Optional[list[str]] = None) -> None:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if node is not None and node.fatal_error is not None:
+        sys.exit(EXIT_UNRECOVERABLE)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,9 @@
 Both are ray casts against the wall segments (vectorised numpy, no loop over pixels), so the
 laser ranges, the depth image and the colour image agree with the ground-truth geometry.
 
-Mounts (base frame: x forward, y left, z up):
+Mounts (base frame: x forward, y left, z up), the defaults of :class:`SensorRig` (:func:`sensor_rig`
+mounts them elsewhere, e.g. a laser 0.2 m ahead of the base; the scans are then in the laser's
+frame and the images in the camera's, as a real robot's drivers publish them):
 
 * laser: ``T_base_laser`` = translation (0, 0, :data:`LASER_HEIGHT_M`), no rotation; 240 deg field
   of view, 0.5 deg resolution (481 beams), 0.1-30 m, gaussian range noise sigma 1 cm; beams
@@ -67,19 +69,62 @@ T_BASE_LASER = _rigid(np.eye(3), (0.0, 0.0, LASER_HEIGHT_M))
 T_BASE_CAMERA = _rigid(R_BASE_OPTICAL, CAMERA_XYZ_M)
 
 
-def kinect_camera() -> CameraModel:
-    """The simulated Kinect: 640x480, fx=fy=525, cx=319.5, cy=239.5, ``T_base_camera`` above."""
-    return CameraModel(KINECT_FX, KINECT_FY, KINECT_CX, KINECT_CY, IMAGE_WIDTH, IMAGE_HEIGHT, T_BASE_CAMERA.copy())
+def kinect_camera(T_base_camera: np.ndarray | None = None) -> CameraModel:
+    """The simulated Kinect: 640x480, fx=fy=525, cx=319.5, cy=239.5, ``T_base_camera`` above by default."""
+    T = T_BASE_CAMERA if T_base_camera is None else T_base_camera
+    return CameraModel(KINECT_FX, KINECT_FY, KINECT_CX, KINECT_CY, IMAGE_WIDTH, IMAGE_HEIGHT, np.array(T, dtype=float))
 
 
 @dataclass(frozen=True)
 class SensorRig:
-    """Sensor models (noise can be switched off, e.g. for geometry tests)."""
+    """Sensor models and mounts (noise can be switched off, e.g. for geometry tests)."""
 
     camera: CameraModel = field(default_factory=kinect_camera)
+    T_base_laser: np.ndarray = field(default_factory=lambda: T_BASE_LASER.copy())
     laser_noise_sigma_m: float = LASER_NOISE_SIGMA_M
     depth_noise_coeff: float = DEPTH_NOISE_COEFF
     pixel_noise_sigma: float = PIXEL_NOISE_SIGMA
+
+
+LEVEL_TOLERANCE = 1e-4  # ~0.01 deg: 1.5708 for pi/2 is level enough
+
+
+def sensor_rig(laser_mount=None, camera_mount=None) -> SensorRig:
+    """A rig with the laser and/or camera mounted elsewhere than the defaults.
+
+    Args:
+        laser_mount: ``[x, y, z, roll, pitch, yaw]`` (m, rad) of the laser in the base frame; level
+            (roll = pitch = 0): the simulated laser scans the horizontal plane.
+        camera_mount: ``[x, y, z, roll, pitch, yaw]`` of the camera's optical frame (z forward, x
+            right, y down) in the base frame; the camera must stay level (optical y pointing down,
+            e.g. roll = -pi/2, pitch = 0, any yaw - pi/2): the renderer casts one vertical plane per column.
+
+    Raises:
+        RtabmapError: a mount that is not 6 numbers or not level.
+    """
+    from rtabmap_ros2.core.transforms import from_xyz_rpy
+    from rtabmap_ros2.errors import RtabmapError
+
+    def parse(name: str, mount) -> np.ndarray:
+        try:
+            return from_xyz_rpy(mount)
+        except ValueError as exc:
+            raise RtabmapError(f"{name} mount: {exc}") from exc
+
+    kwargs = {}
+    if laser_mount is not None:
+        T = parse("laser", laser_mount)
+        if abs(T[2, 2] - 1.0) > LEVEL_TOLERANCE:
+            raise RtabmapError(f"laser mount {list(laser_mount)} is not level (roll and pitch must be 0): "
+                               "the simulated laser scans the horizontal plane")
+        kwargs["T_base_laser"] = T
+    if camera_mount is not None:
+        T = parse("camera", camera_mount)
+        if not np.allclose(T[:3, 1], (0.0, 0.0, -1.0), atol=LEVEL_TOLERANCE):
+            raise RtabmapError(f"camera mount {list(camera_mount)} is not level: the optical y axis must point "
+                               "down (roll -pi/2, pitch 0, yaw -pi/2 looks forward)")
+        kwargs["camera"] = kinect_camera(T)
+    return SensorRig(**kwargs)
 
 
 def raycast(world: World, origin_xy: np.ndarray, directions_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -113,7 +158,7 @@ def raycast(world: World, origin_xy: np.ndarray, directions_xy: np.ndarray) -> t
 def render_scan(world: World, T_world_base: np.ndarray, rng: np.random.Generator | None = None,
                 rig: SensorRig = SensorRig()) -> LaserScan:
     """Laser scan at the base pose ``T_world_base`` (4x4, planar): ranges (481,) m, ``inf`` = no return."""
-    T = T_world_base @ T_BASE_LASER
+    T = T_world_base @ rig.T_base_laser
     n = int(round(LASER_FOV_RAD / LASER_RESOLUTION_RAD)) + 1
     angle_min = -LASER_FOV_RAD / 2
     angles = angle_min + LASER_RESOLUTION_RAD * np.arange(n)
@@ -125,7 +170,7 @@ def render_scan(world: World, T_world_base: np.ndarray, rng: np.random.Generator
     ranges = np.where((ranges >= LASER_RANGE_MIN_M) & (ranges < LASER_RANGE_MAX_M), ranges, np.inf)
     return LaserScan(ranges=ranges.astype(np.float32), angle_min=float(angle_min),
                      angle_increment=float(LASER_RESOLUTION_RAD), range_min=LASER_RANGE_MIN_M,
-                     range_max=LASER_RANGE_MAX_M, T_base_laser=T_BASE_LASER.copy())
+                     range_max=LASER_RANGE_MAX_M, T_base_laser=rig.T_base_laser.copy())
 
 
 def _shade(distance_m: np.ndarray) -> np.ndarray:

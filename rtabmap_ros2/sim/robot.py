@@ -14,7 +14,8 @@ frames ``(dx, dy, dyaw)`` (previous base frame) is corrupted and integrated from
   session ``bias ~ N(0, 0.1 deg/m)`` (a slightly wrong wheel base): a decent indoor wheel
   odometry (a few degrees of heading error per 100 m). The first version used 1 deg/m and
   0.2 deg/m, several times worse than real wheel odometry;
-* reset to identity at each session start (odom frame = pose of the first frame).
+* reset to identity at each session start (odom frame = pose of the first frame);
+  :func:`reset_odometry` resets it anywhere else (a wheel driver restarted mid-session).
 
 The covariance written in the odometry is *fixed per step*: the variance of one 1 s increment at
 nominal speed (:func:`step_covariance`), since rtabmap_ros uses the odometry covariance as the
@@ -243,4 +244,15 @@ def wheel_odometry(xy_yaw: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         y += s * odx + c * ody
         yaw = transforms.wrap_angle(yaw + odyaw)
         out[k] = transforms.from_xy_yaw(x, y, yaw)
+    return out
+
+
+def reset_odometry(T_odom_base: np.ndarray, at: int) -> np.ndarray:
+    """Odometry (N,4,4) reset to identity at frame ``at``: frames from ``at`` on are expressed in
+    a new odometry frame, the pose of frame ``at`` (as a driver restarted there would report)."""
+    if not 0 <= at < len(T_odom_base):
+        raise RtabmapError(f"odometry reset at frame {at} is outside the {len(T_odom_base)} frames")
+    out = np.array(T_odom_base, dtype=np.float64, copy=True)
+    out[at:] = transforms.inverse(out[at]) @ out[at:]
+    out[at] = np.eye(4)
     return out

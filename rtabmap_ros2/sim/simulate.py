@@ -43,7 +43,7 @@ import numpy as np
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.errors import RtabmapError
-from rtabmap_ros2.sim.render import SensorRig, render_rgbd, render_scan
+from rtabmap_ros2.sim.render import SensorRig, render_rgbd, render_scan, sensor_rig
 from rtabmap_ros2.sim.robot import (
     SESSION_PLANS, SMALL_SESSION_PLANS, Trajectory, plan_trajectory, step_covariance, wheel_odometry,
 )
@@ -258,18 +258,21 @@ def _init_worker(seed: int) -> None:
     _WORKER_WORLD = build_world(seed)
 
 
-def _write_session_bag(out_dir: Path, seed: int, session: SessionTruth, raw_images: bool) -> str:
+def _write_session_bag(out_dir: Path, seed: int, session: SessionTruth, raw_images: bool,
+                       rig: SensorRig = SensorRig(), tf_static: bool = True) -> str:
     from rtabmap_ros2.io.bag import TopicNames, write_bag
 
     world = _WORKER_WORLD if _WORKER_WORLD is not None and _WORKER_WORLD.seed == seed else build_world(seed)
     path = out_dir / f"session_{session.index}"
-    write_bag(path, session_frames(world, session), topics=TopicNames(),
-              rgb_format="raw" if raw_images else "jpeg", depth_format="raw" if raw_images else "png")
+    write_bag(path, session_frames(world, session, rig), topics=TopicNames(),
+              rgb_format="raw" if raw_images else "jpeg", depth_format="raw" if raw_images else "png",
+              tf_static=tf_static)
     return str(path)
 
 
 def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool = False, jobs: Optional[int] = None,
-             raw_images: bool = False) -> SimulationSummary:
+             raw_images: bool = False, laser_mount=None, camera_mount=None,
+             tf_static: bool = True) -> SimulationSummary:
     """Write the bags, ground truth, revisits, plot and summary of a simulated multi-session run.
 
     Args:
@@ -279,6 +282,11 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
         small: 2 short sessions (~50 frames each, the second revisits the first) for tests.
         jobs: worker processes rendering sessions in parallel (default: min(2, CPUs)).
         raw_images: write raw rgb8 / 16UC1 images instead of JPEG / PNG (about 1.5 MB per frame).
+        laser_mount, camera_mount: ``[x, y, z, roll, pitch, yaw]`` of the laser / the camera's optical
+            frame on the base (default: :mod:`rtabmap_ros2.sim.render`'s); the scans and images are in
+            those frames, as real drivers publish them.
+        tf_static: write the mounts on ``/tf_static`` (False: a bag without it, as recorded by a
+            user who forgot it; the mounts must then be given to ``map`` / the node).
     """
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -287,17 +295,18 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
     for k in range(1, sessions + 1):
         if (out / f"session_{k}").exists():
             raise RtabmapError(f"{out / f'session_{k}'} already exists: remove it or choose another --out")
+    rig = sensor_rig(laser_mount, camera_mount)
     world = build_world(seed)
     truths = make_sessions(world, sessions, small)
     jobs = jobs or min(2, os.cpu_count() or 1)
     if jobs > 1 and sessions > 1:
         with ProcessPoolExecutor(max_workers=min(jobs, sessions), initializer=_init_worker, initargs=(seed,)) as pool:
             bags = list(pool.map(_write_session_bag, [out] * sessions, [seed] * sessions, truths,
-                                 [raw_images] * sessions))
+                                 [raw_images] * sessions, [rig] * sessions, [tf_static] * sessions))
     else:
         global _WORKER_WORLD
         _WORKER_WORLD = world
-        bags = [_write_session_bag(out, seed, s, raw_images) for s in truths]
+        bags = [_write_session_bag(out, seed, s, raw_images, rig, tf_static) for s in truths]
     write_ground_truth(out / "ground_truth.txt", truths)
     revisits = find_revisits(truths)
     write_revisits(out / "loops.csv", revisits)
@@ -325,6 +334,9 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
                      float(world.p0[:, 0].max()), float(world.p0[:, 1].max())],
     }
     info["images"] = "raw" if raw_images else "jpeg+png"
+    info["mounts"] = {"base_to_laser": [round(float(v), 6) for v in transforms.to_xyz_rpy(rig.T_base_laser)],
+                      "base_to_camera": [round(float(v), 6) for v in transforms.to_xyz_rpy(rig.camera.T_base_camera)],
+                      "tf_static": tf_static}
     with open(out / "world.json", "w") as f:
         json.dump(info, f, indent=2)
     logger.info("simulated %d sessions, %d frames, %.0f m in %.1f s -> %s", sessions, summary.total_frames,

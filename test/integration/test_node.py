@@ -97,14 +97,14 @@ class SensorRig(Node):
         with self.lock:
             return [conv.statistics_from_msg(m) for m in self.received["info"]]
 
-    def publish_frame(self, frame, stamp_ns=None, skip=()):
+    def publish_frame(self, frame, stamp_ns=None, skip=(), encoding="bgr8", depth_m=None):
         stamp = frame.stamp_ns if stamp_ns is None else stamp_ns
         msgs = {
             "camera_info": conv.camera_info_to_msg(frame.camera, stamp, "camera_optical"),
             "odom": conv.odometry_to_msg(frame.T_odom_base, stamp, covariance=frame.odom_covariance),
             "scan": conv.scan_to_msg(frame.scan, stamp, "laser"),
-            "depth": conv.depth_to_msg(frame.depth_m, stamp, "camera_optical"),
-            "rgb": conv.image_to_msg(frame.rgb, stamp, "camera_optical", "bgr8"),
+            "depth": conv.depth_to_msg(frame.depth_m if depth_m is None else depth_m, stamp, "camera_optical"),
+            "rgb": conv.image_to_msg(frame.rgb, stamp, "camera_optical", encoding),
         }
         for name, msg in msgs.items():
             if name not in skip:
@@ -142,10 +142,10 @@ class Harness:
         self.thread.start()
         assert wait_for(self.tester.connected)
 
-    def feed(self, frame, stamp_ns=None) -> dict[str, str]:
+    def feed(self, frame, stamp_ns=None, **publish) -> dict[str, str]:
         """Publish one frame and wait until the node reports it on info."""
         before = self.tester.count("info")
-        self.tester.publish_frame(frame, stamp_ns)
+        self.tester.publish_frame(frame, stamp_ns, **publish)
         assert wait_for(lambda: self.tester.count("info") > before), "no info for a published frame"
         return self.tester.infos()[-1]
 
@@ -230,7 +230,13 @@ def _hold_worker(node) -> threading.Event:
     def busy():
         started.set()
         release.wait()
-    threading.Thread(target=node._in_worker, args=(busy,), daemon=True).start()
+
+    def hold():
+        try:
+            node._in_worker(busy, "held by the test")
+        except RtabmapError:   # service_timeout_s passed: the command still holds the worker
+            pass
+    threading.Thread(target=hold, daemon=True).start()
     assert started.wait(TIMEOUT_S)
     return release
 
@@ -295,6 +301,24 @@ def test_pause_resume_trigger_new_map_and_reset(harness, frames):
     assert len(t.last("mapPath").poses) == 1
 
 
+def test_an_odometry_reset_with_its_first_frames_lost_starts_a_new_map(harness, frames):
+    # A second recording played two minutes after the first: its odometry restarted at frame 8
+    # (identity there), but frames 8 and 9 never arrived; the first one received is 1 m away
+    # from the new origin. The core sees the reset (a move across a silence), not the node.
+    from dataclasses import replace
+
+    from rtabmap_ros2.sim.robot import reset_odometry
+
+    first = [harness.feed(f) for f in frames[:6]]
+    restarted = reset_odometry(np.stack([f.T_odom_base for f in frames]), 8)
+    later = 120 * 10**9
+    second = [harness.feed(replace(f, T_odom_base=restarted[i], stamp_ns=f.stamp_ns + later))
+              for i, f in enumerate(frames[10:13], start=10)]
+    assert {int(i["map_id"]) for i in first} == {0}
+    assert [int(i["map_id"]) for i in second] == [1, 1, 1]
+    assert [i["new_map"] for i in second] == ["true", "false", "false"]
+
+
 def test_localization_mode_adds_no_node(harness, frames):
     t = harness.tester
     for f in frames[:5]:
@@ -350,7 +374,7 @@ def test_bad_messages_are_dropped_and_the_node_keeps_running(harness, frames):
     f = frames[1]
     stamp = f.stamp_ns
     bad_rgb = conv.image_to_msg(f.rgb, stamp, "c")
-    bad_rgb.encoding = "yuv422"
+    bad_rgb.encoding = "yuv444"
     t.pubs["rgb"].publish(bad_rgb)
     t.pubs["depth"].publish(conv.depth_to_msg(np.full_like(f.depth_m, np.inf), stamp, "c", "32FC1"))
     empty_scan = conv.scan_to_msg(f.scan, stamp, "laser")
@@ -360,7 +384,8 @@ def test_bad_messages_are_dropped_and_the_node_keeps_running(harness, frames):
     nan_odom.pose.pose.position.x = float("nan")
     t.pubs["odom"].publish(nan_odom)
     t.pubs["odom"].publish(conv.odometry_to_msg(f.T_odom_base, frames[0].stamp_ns - 500_000_000))  # backwards
-    small_depth = conv.depth_to_msg(f.depth_m[::2, ::2], frames[2].stamp_ns, "c")   # size mismatch
+    # Another aspect ratio than the RGB image: not registrable by scaling (half size would be registered).
+    small_depth = conv.depth_to_msg(np.ascontiguousarray(f.depth_m[:, :400]), frames[2].stamp_ns, "c")
     t.publish_frame(frames[2], skip=("depth",))
     t.pubs["depth"].publish(small_depth)
     expected = {("/rgb/image", "encoding"), ("/depth/image", "inf_depth"), ("/scan", "empty_scan"),
@@ -426,3 +451,143 @@ def test_node_subprocess_sigterm_flushes_database(ros_env, context, tmp_path, fr
     finally:
         db.close()
     assert last_id in nodes and len(nodes) >= 2
+
+
+# -- issue 13: RTAB-Map names, QoS auto, a worker that survives, services with a timeout --------------
+def test_rtabmap_named_parameters_take_effect(context, tmp_path, frames, capfd):
+    """-p Mem/STMSize:=3 (also as a string) reaches the core; an unknown Group/Name is named with the
+    closest known one; Mem/IncrementalMemory:=false starts in localization mode."""
+    h = Harness(context, tmp_path, **{"Mem/STMSize": "3", "Rtabmap/LoopThr": 0.2, "Mem/STMSiz": 4})
+    try:
+        assert h.node.params.memory.stm_size == 3 and h.node._core.params.memory.stm_size == 3
+        assert h.node.params.bayes.loop_threshold == pytest.approx(0.2)
+        assert h.node.get_parameter("Mem/STMSize").value == "3"
+        infos = [h.feed(f) for f in frames[:6]]
+        assert [int(i["stm_size"]) for i in infos] == [1, 2, 3, 3, 3, 3]   # the STM holds 3 nodes
+    finally:
+        h.close()
+    err = capfd.readouterr().err
+    assert "unknown RTAB-Map parameter Mem/STMSiz" in err and "did you mean Mem/STMSize?" in err, err
+
+    h = Harness(context, tmp_path / "loc", **{"Mem/IncrementalMemory": "false"})
+    try:
+        assert h.node._core.localization_mode
+        assert int(h.feed(frames[0])["location_id"]) == 0   # localization: no node added
+    finally:
+        h.close()
+
+
+def test_qos_auto_follows_the_publishers(context, tmp_path):
+    from rclpy.qos import qos_profile_sensor_data
+
+    h = Harness(context, tmp_path, qos="auto")
+    node, subs = h.node, h.node.subscriptions_
+    extra = Node("best_effort_driver", context=context)
+    try:
+        # The rig's publishers are reliable: so is the subscription (every message, repaired if lost).
+        assert wait_for(lambda: all(subs.current.get(s, (None, None))[1] == ReliabilityPolicy.RELIABLE
+                                    for s in ("odom", "scan", "rgb", "depth", "camera_info")))
+        assert subs.current["rgb"][0].topic == "/rgb/image"   # raw published, not compressed
+        # A best-effort publisher appears on scan: the subscription is recreated best effort (else it
+        # would not match that publisher); the others stay.
+        extra.create_publisher(LaserScan, "scan", qos_profile_sensor_data)
+        assert wait_for(lambda: subs.current["scan"][1] == ReliabilityPolicy.BEST_EFFORT)
+        assert subs.current["odom"][1] == ReliabilityPolicy.RELIABLE
+        scan_subs = [s for s in node.subscriptions if s.topic_name == "/scan"]
+        assert len(scan_subs) == 1 and scan_subs[0].qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+    finally:
+        extra.destroy_node()
+        h.close()
+
+
+def test_unexpected_error_in_a_frame_is_logged_once_and_the_node_goes_on(harness, frames, capfd):
+    node = harness.node
+    process = node._core.process
+    failures = []
+
+    def flaky(frame):
+        if len(failures) < 2:   # the first two frames hit a bug deep in the core
+            failures.append(frame.stamp_ns)
+            return np.linalg.inv(np.zeros((3, 3)))
+        return process(frame)
+
+    node._core.process = flaky
+    harness.tester.publish_frame(frames[0])
+    harness.tester.publish_frame(frames[1])
+    assert wait_for(lambda: sum(node.frame_errors.values()) == 2), node.frame_errors
+    info = harness.feed(frames[2])   # still processing
+    assert int(info["location_id"]) > 0 and info["node_frame_errors"] == "2"
+    assert list(node.frame_errors) == [next(iter(node.frame_errors))] and "LinAlgError" in next(iter(node.frame_errors))
+    err = capfd.readouterr().err
+    assert err.count("unexpected LinAlgError") == 1 and "Traceback" in err, err
+
+
+def test_services_answer_while_the_worker_is_busy(context, tmp_path, frames, capfd):
+    h = Harness(context, tmp_path, service_timeout_s=1.0)
+    try:
+        h.feed(frames[0])
+        release = _hold_worker(h.node)
+        try:
+            h.tester.call("backup")   # answers (Empty) although the worker is held
+            response = h.tester.call("export_global_map", Trigger)
+            assert not response.success and "did not answer within 1 s" in response.message, response.message
+            assert not release.is_set()
+        finally:
+            release.set()
+        info = h.feed(frames[1])   # the worker goes on
+        assert int(info["location_id"]) > 0
+        assert not list(tmp_path.glob("rtabmap-backup-*.db"))   # the timed-out backup was cancelled
+    finally:
+        h.close()
+    assert "service backup failed" in capfd.readouterr().err
+
+
+FATAL_NODE = """
+import sys
+from rtabmap_ros2.core.rtabmap import Rtabmap
+from rtabmap_ros2.errors import DatabaseError
+
+def process(self, frame):
+    raise DatabaseError("write to database failed: database or disk is full")
+
+Rtabmap.process = process   # the disk fills up at the first frame
+from rtabmap_ros2.ros.node import main
+main(sys.argv[1:])
+"""
+
+
+def test_unrecoverable_error_ends_the_process_non_zero(ros_env, context, tmp_path, frames):
+    from rtabmap_ros2.ros.node import EXIT_UNRECOVERABLE
+
+    proc = subprocess.Popen(
+        [sys.executable, "-c", FATAL_NODE, "--ros-args", "-p", f"database_path:={tmp_path / 'full.db'}",
+         "-p", f"export_dir:={tmp_path / 'exports'}"],
+        env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    tester = SensorRig(context)
+    executor = MultiThreadedExecutor(num_threads=2, context=context)
+    executor.add_node(tester)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        assert wait_for(tester.connected, 60)
+        tester.publish_frame(frames[0])
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        executor.shutdown()
+        thread.join(timeout=10)
+        tester.destroy_node()
+    assert proc.returncode == EXIT_UNRECOVERABLE, out
+    assert "unrecoverable error" in out and "disk is full" in out
+
+
+@pytest.mark.parametrize("encoding", ["rgba8", "bgra8", "mono16", "bayer_rggb8", "bayer_grbg16", "yuv422", "yuyv"])
+def test_drivers_encodings_are_mapped(harness, frames, encoding):
+    """Frames whose colour image comes in each encoding drivers publish (and a depth image at half the
+    RGB resolution, registered by scaling) are processed: nodes with visual words."""
+    half_depth = np.ascontiguousarray(frames[1].depth_m[::2, ::2])
+    infos = [harness.feed(frames[0], encoding=encoding), harness.feed(frames[1], encoding=encoding,
+                                                                      depth_m=half_depth)]
+    assert all(int(i["location_id"]) > 0 for i in infos) and int(infos[0]["words_added"]) > 0, infos
+    assert not harness.node.bad_messages and not harness.node.frame_errors

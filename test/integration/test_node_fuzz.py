@@ -60,7 +60,7 @@ def _bad_inputs(frame):
         return make
 
     def encoding(m):
-        m.encoding = "yuv422"
+        m.encoding = "yuv444"   # yuv422 is read (issue 13)
 
     def short(m):
         m.data = bytes(m.data)[: len(m.data) // 2]
@@ -93,8 +93,9 @@ def _bad_inputs(frame):
     def zero_depth(stamp, m):
         return conv.depth_to_msg(np.zeros_like(frame.depth_m), stamp, "camera_optical", "16UC1")
 
-    def half_depth(stamp, m):
-        return conv.depth_to_msg(frame.depth_m[::2, ::2], stamp, "camera_optical")
+    def other_aspect_depth(stamp, m):
+        # Half the size would be registered by scaling (issue 13); another aspect ratio cannot be.
+        return conv.depth_to_msg(np.ascontiguousarray(frame.depth_m[:, :400]), stamp, "camera_optical")
 
     def huge_rgb(stamp, m):
         return conv.image_to_msg(np.zeros((1500, 2000, 3), np.uint8), stamp, "camera_optical", "bgr8")
@@ -126,7 +127,7 @@ def _bad_inputs(frame):
         ("inf depth", ("/depth/image", "inf_depth"), full_set("depth", inf_depth)),
         ("all-NaN depth (32FC1)", ("/depth/image", "no_valid_depth"), full_set("depth", nan_depth)),
         ("all-zero depth (16UC1)", ("/depth/image", "no_valid_depth"), full_set("depth", zero_depth)),
-        ("depth size differs from rgb", ("/depth/image", "size_mismatch"), full_set("depth", half_depth)),
+        ("depth size differs from rgb", ("/depth/image", "size_mismatch"), full_set("depth", other_aspect_depth)),
         ("huge rgb image", ("/depth/image", "size_mismatch"), full_set("rgb", huge_rgb)),
         ("one return in a scan", ("/scan", "no_valid_scan"), full_set("scan", one_return_scan)),
     ]

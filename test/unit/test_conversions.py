@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import cv2
+
 import numpy as np
 import pytest
 
@@ -105,7 +107,7 @@ def test_bgr8_bytes_are_reversed(rgb):
 def test_mono8_becomes_gray_rgb(rgb):
     msg = conv.image_to_msg(rgb, 0, "camera", "mono8")
     out = conv.image_from_msg(msg)
-    gray = rgb.mean(axis=2).round().astype(np.uint8)
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)   # luma weights (cv_bridge's)
     for c in range(3):
         np.testing.assert_array_equal(out[:, :, c], gray)
 
@@ -128,8 +130,8 @@ def test_image_step_padding_is_honoured(rgb, encoding):
 
 def test_unsupported_image_encoding_names_it(rgb):
     msg = conv.image_to_msg(rgb, 0, "c")
-    msg.encoding = "yuv422"
-    with pytest.raises(SensorDataError, match="yuv422"):
+    msg.encoding = "yuv444"
+    with pytest.raises(SensorDataError, match="yuv444"):
         conv.image_from_msg(msg)
 
 
@@ -271,6 +273,97 @@ def test_statistics_round_trip():
                       "new_map": "false", "timings_ms/bayes": "1.5"}
 
 
+# -- issue 13: the encodings drivers publish, compressed transports, P, registration, mounts --------
+def _smooth_rgb(h: int = 48, w: int = 64) -> np.ndarray:
+    """A smooth colour image (demosaicing and 4:2:2 chroma are exact only where colour varies slowly)."""
+    y, x = np.mgrid[0:h, 0:w]
+    rgb = np.stack([(x * 4) % 256, (y * 5) % 256, ((x + y) * 2) % 256], axis=2).astype(np.uint8)
+    return cv2.GaussianBlur(rgb, (7, 7), 2)
+
+
+@pytest.mark.parametrize("encoding, max_mean_error", [
+    ("rgba8", 0), ("bgra8", 0), ("rgb16", 0), ("bgr16", 0),
+    ("bayer_rggb8", 1), ("bayer_bggr8", 1), ("bayer_gbrg8", 1), ("bayer_grbg8", 1), ("bayer_rggb16", 1),
+    ("yuv422", 1.5), ("yuv422_yuy2", 1.5), ("yuyv", 1.5)])
+def test_colour_encodings_round_trip(encoding, max_mean_error):
+    rgb = _smooth_rgb()
+    msg = conv.image_to_msg(rgb, 0, "c", encoding)
+    out = conv.image_from_msg(_padded(msg, pad=6))
+    error = np.abs(out.astype(int) - rgb.astype(int))[4:-4, 4:-4]   # demosaicing borders aside
+    assert out.shape == rgb.shape and error.mean() <= max_mean_error, (encoding, error.mean())
+
+
+@pytest.mark.parametrize("encoding, other", [("bayer_rggb8", "bayer_bggr8"), ("bayer_gbrg8", "bayer_grbg8"),
+                                             ("yuv422", "yuyv")])
+def test_colour_encodings_are_told_apart(encoding, other):
+    """Reading a mosaic with the wrong pattern (or UYVY as YUYV) gives other colours: the table is not a no-op."""
+    rgb = _smooth_rgb()
+    msg = conv.image_to_msg(rgb, 0, "c", encoding)
+    msg.encoding = other
+    assert np.abs(conv.image_from_msg(msg).astype(int) - rgb.astype(int)).mean() > 10
+
+
+def test_mono16_colour_is_grey():
+    rgb = _smooth_rgb()
+    msg = conv.image_to_msg(rgb, 0, "c", "mono16")
+    assert msg.step == 2 * rgb.shape[1]
+    out = conv.image_from_msg(msg)
+    np.testing.assert_array_equal(out[..., 0], cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
+    np.testing.assert_array_equal(out[..., 0], out[..., 2])
+
+
+def test_compressed_image_and_depth_round_trip():
+    rgb = _smooth_rgb()
+    out = conv.compressed_image_from_msg(conv.compressed_image_to_msg(rgb, 5, "c"))
+    assert np.abs(out.astype(int) - rgb.astype(int)).mean() < 3   # JPEG
+    depth = np.array([[0.0, 1.0, 1.234], [np.nan, 4.5, 65.535]], dtype=np.float32)
+    msg = conv.compressed_depth_to_msg(depth, 5, "c")
+    assert msg.format == "16UC1; compressedDepth png"
+    np.testing.assert_allclose(conv.compressed_depth_from_msg(msg), [[np.nan, 1.0, 1.234], [np.nan, 4.5, 65.535]],
+                               rtol=1e-6)
+
+
+def test_rectified_projection_is_used_when_p_differs_from_k():
+    cam = CameraModel(525.0, 526.0, 319.5, 239.5, 640, 480)
+    msg = conv.camera_info_to_msg(cam, 0, "camera")
+    msg.d = np.array([0.1, -0.2, 0.0, 0.0, 0.05])   # a distorted camera: P is the rectified image's
+    msg.p = np.array([500.0, 0, 321.0, 0, 0, 501.0, 238.0, 0, 0, 0, 1, 0])
+    model = conv.camera_model_from_msg(msg)
+    assert (model.fx, model.fy, model.cx, model.cy) == (500.0, 501.0, 321.0, 238.0)
+    msg.p = np.zeros(12)   # P unset: K
+    assert conv.camera_model_from_msg(msg).fx == 525.0
+
+
+def test_depth_at_half_resolution_is_registered_by_scaling():
+    from rtabmap_ros2.core.sensor import SensorFrame
+    from rtabmap_ros2.io.bag import register_to_rgb
+
+    rgb = np.zeros((480, 640, 3), np.uint8)
+    depth = np.arange(240 * 320, dtype=np.float32).reshape(240, 320) / 1000 + 0.5
+    half = CameraModel(262.5, 262.5, 159.75, 119.75, 320, 240)   # camera_info of the depth stream
+    frame = register_to_rgb(SensorFrame(stamp_ns=1, rgb=rgb, depth_m=depth, camera=half))
+    frame.validate()
+    assert frame.depth_m.shape == (480, 640) and frame.depth_m[101, 201] == depth[50, 100]   # nearest
+    assert (frame.camera.fx, frame.camera.cx, frame.camera.width) == (525.0, 319.5, 640)
+    # Another aspect ratio is not a registered depth: rejected, naming both sizes.
+    with pytest.raises(SensorDataError, match="200x240 and rgb 640x480: sizes differ"):
+        register_to_rgb(SensorFrame(stamp_ns=1, rgb=rgb, depth_m=depth[:, :200].copy(), camera=half))
+
+
+def test_mounts_from_parameters_without_tf2():
+    from rtabmap_ros2.core.params import NodeParams
+    from rtabmap_ros2.ros.frames import CAMERA, LASER, SensorMounts
+
+    params = NodeParams(base_to_laser=(0.2, 0.0, 0.3, 0.0, 0.0, np.pi / 2))
+    mounts = SensorMounts(None, params, tf2=None)
+    assert mounts.source == "parameters" and "tf2_ros is not available" in mounts.describe()
+    T = mounts.T_base(LASER, "laser", 0)
+    np.testing.assert_allclose(T[:3, 3], [0.2, 0.0, 0.3])
+    np.testing.assert_allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)   # laser x = base y
+    # The default camera mount is the optical frame at the base origin looking forward.
+    np.testing.assert_allclose(mounts.T_base(CAMERA, "camera_optical", 0), conv.DEFAULT_T_BASE_CAMERA, atol=1e-12)
+
+
 # -- reasons of rejected messages (the node logs once and counts per (topic, reason)) ---------------
 def _reason(convert, msg) -> str:
     with pytest.raises(SensorDataError) as info:
@@ -280,7 +373,7 @@ def _reason(convert, msg) -> str:
 
 def test_rejections_name_their_reason(rgb):
     image = conv.image_to_msg(rgb, 0, "c")
-    image.encoding = "yuv422"
+    image.encoding = "yuv444"
     assert _reason(conv.image_from_msg, image) == "encoding"
     image = conv.image_to_msg(rgb, 0, "c")
     image.data = bytes(image.data)[:-1]

@@ -1,0 +1,214 @@
+"""Multi-session edge cases (issue 14 item 5): odometry reset detection and the local map.
+
+Reset detection is exercised through :meth:`Rtabmap.process` on frames holding only odometry
+(each becomes a node without words: cheap), from synthetic drives and from the simulator's
+wheel odometry, with frames dropped as DDS drops them (103 of 200 arrived in the issue's run).
+The end-to-end runs render the simulated sessions and check the exported map against ground truth.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.graph import Link, LinkType
+from rtabmap_ros2.core.params import Params
+from rtabmap_ros2.core.rtabmap import Rtabmap
+from rtabmap_ros2.core.sensor import SensorFrame
+from rtabmap_ros2.sim import build_world, make_sessions
+from rtabmap_ros2.sim.robot import reset_odometry, step_covariance
+from rtabmap_ros2.sim.sequence import make_sequence
+
+NS = 10**9
+COVARIANCE = step_covariance(0.5)
+
+
+@pytest.fixture(scope="module")
+def sessions():
+    """The 5 simulated sessions (ground truth and wheel odometry only, nothing rendered)."""
+    return make_sessions(build_world(seed=0))
+
+
+def pose_frames(stamps_s, poses, covariance=COVARIANCE) -> list[SensorFrame]:
+    return [SensorFrame(int(round(t * NS)), np.asarray(T, dtype=float), covariance) for t, T in zip(stamps_s, poses)]
+
+
+def new_maps(tmp_path, frames, params: Params = Params()) -> list[int]:
+    """Indices of the frames that started a new map."""
+    with Rtabmap(params, tmp_path / "reset.db", delete_existing=True) as rtabmap:
+        return [k for k, frame in enumerate(frames) if rtabmap.process(frame).new_map]
+
+
+def drive(waypoints, speed=0.5, period=1.0):
+    """Poses (N,4,4) every ``period`` s along straight segments between (x, y) waypoints at
+    ``speed``, heading along the motion."""
+    points = [np.asarray(waypoints[0], float)]
+    for a, b in zip(waypoints[:-1], waypoints[1:]):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        steps = max(1, int(np.ceil(np.linalg.norm(b - a) / (speed * period))))
+        points += [a + (b - a) * k / steps for k in range(1, steps + 1)]
+    points = np.array(points)
+    step = np.diff(points, axis=0)
+    heading = np.append(np.arctan2(step[:, 1], step[:, 0]), np.arctan2(step[-1, 1], step[-1, 0]))
+    return np.stack([transforms.from_xy_yaw(x, y, a) for (x, y), a in zip(points, heading)])
+
+
+def keep_about_half(n: int, seed: int) -> np.ndarray:
+    """Indices of the frames that arrive when about half are lost (always the first)."""
+    keep = np.random.default_rng(seed).random(n) < 0.52
+    keep[0] = True
+    return np.flatnonzero(keep)
+
+
+# -- (a) the previous session ended near its origin ---------------------------------------------
+
+def test_reset_to_identity_is_seen_however_near_its_origin_the_previous_session_ended(tmp_path):
+    # A robot drives a 3 x 2 m loop back to 2 cm of its start (no reset: odometry never lands
+    # on identity), drives the loop again and docks 8 cm from where it started; its odometry
+    # is then reset to identity for the next session.
+    lap = drive([(0, 0), (3, 0), (3, 2), (0, 2), (0.02, 0.0)])
+    docked = lap[-1].copy()
+    docked[:3, 3] = (0.08, -0.03, 0.0)
+    first = np.concatenate([lap, lap[1:-1], [docked]])
+    second = drive([(0, 0), (2, 0)])
+    stamps = np.arange(len(first) + len(second), dtype=float)
+    assert new_maps(tmp_path, pose_frames(stamps, np.concatenate([first, second]))) == [len(first)]
+
+
+def test_a_robot_parked_at_its_origin_is_not_a_new_session(tmp_path):
+    # Standing still at identity for a while, driving, then the same: nothing resets.
+    poses = np.concatenate([np.repeat(np.eye(4)[None], 5, axis=0), drive([(0, 0), (2, 0), (0, 0)])])
+    assert new_maps(tmp_path, pose_frames(np.arange(len(poses), dtype=float), poses)) == []
+
+
+# -- (b) the first frames after the reset were lost --------------------------------------------
+
+@pytest.mark.parametrize("lost", [3, 8])
+def test_reset_is_seen_when_its_first_frames_were_lost(tmp_path, sessions, lost):
+    # Session 2's wheel odometry restarted at three places of the route; the frames right after
+    # each restart are lost and about half of all others too (the issue's 103 of 200), so the
+    # first frame received after a restart is already metres away from its origin.
+    session = sessions[1]
+    restarts = (100, 180, 260)
+    T = session.T_odom_base
+    for at in restarts:
+        T = reset_odometry(T, at)
+    arrived = [i for i in keep_about_half(len(session), seed=lost)
+               if not any(at <= i < at + lost for at in restarts)]
+    stamps = session.stamps_ns[arrived] / NS
+    frames = pose_frames(stamps, T[arrived])
+    first_after = [next(k for k, i in enumerate(arrived) if i >= at) for at in restarts]
+    assert all(arrived[k] - at >= lost for k, at in zip(first_after, restarts))
+    assert new_maps(tmp_path, frames) == first_after
+
+
+def test_sessions_played_back_to_back_with_their_first_frames_lost_are_separate_maps(tmp_path, sessions):
+    # The 5 sessions in one stream, about half of the frames lost and the first 8 of each
+    # session too: with their recorded stamps (an hour apart) and with the sessions following
+    # each other 1 s apart (one recording, the odometry restarted in it).
+    for back_to_back in (False, True):
+        frames, starts, offset = [], [], 0.0
+        for k, session in enumerate(sessions):
+            arrived = [i for i in keep_about_half(len(session), seed=k) if i >= 8 or k == 0]
+            stamps = session.stamps_ns[arrived] / NS
+            if back_to_back:
+                offset = (frames[-1].stamp_ns / NS + 1.0 - stamps[0]) if frames else 0.0
+            starts.append(len(frames))
+            frames += pose_frames(stamps + offset, session.T_odom_base[arrived])
+        assert new_maps(tmp_path, frames) == starts[1:], f"back to back: {back_to_back}"
+
+
+# -- (c) a reset signalled only by a time gap and a pose jump ----------------------------------
+
+def test_reset_signalled_only_by_a_pose_jump_the_elapsed_time_cannot_explain(tmp_path):
+    # Odometry restarted at an arbitrary pose (an EKF re-initialised), no identity, no
+    # covariance flag: 2 s after the last frame the pose is 25 m away.
+    before = drive([(0, 0), (6, 0), (6, 4)])
+    restart = transforms.from_xy_yaw(-12.0, 20.0, 1.0)
+    after = restart @ drive([(0, 0), (4, 0)])
+    stamps = np.concatenate([np.arange(len(before)), len(before) + 1 + np.arange(len(after))]).astype(float)
+    assert new_maps(tmp_path, pose_frames(stamps, np.concatenate([before, after]))) == [len(before)]
+
+
+def test_a_long_silence_is_a_reset_only_if_the_robot_moved_across_it(tmp_path):
+    # 10 minutes without a frame. Parked meanwhile: the same map goes on. Moved 3 m (the
+    # odometry that bridged the silence is not trusted): a new map.
+    route = drive([(0, 0), (5, 0)])
+    moved = transforms.from_xy_yaw(3.0, 0.0, 0.0) @ drive([(5, 0), (5, 3)])
+    for later, expected in ((drive([(5, 0), (5, 3)]), []), (moved, [len(route)])):
+        stamps = np.concatenate([np.arange(len(route)), len(route) + 600 + np.arange(len(later))]).astype(float)
+        assert new_maps(tmp_path, pose_frames(stamps, np.concatenate([route, later]))) == expected
+
+
+def test_no_reset_on_ordinary_gaps_and_fast_driving(tmp_path, sessions):
+    # Every session with about half of its frames lost (gaps of 1-8 s), driven at the simulated
+    # speed (0.45-0.55 m/s) and 4 times faster (odometry scaled: about 2 m/s, faster than
+    # graph.odom_reset_speed, so the robot's own speed must be learnt): no new map inside any.
+    for scale in (1.0, 4.0):
+        for k, session in enumerate(sessions):
+            arrived = keep_about_half(len(session), seed=10 + k)
+            T = session.T_odom_base[arrived].copy()
+            T[:, :3, 3] *= scale
+            assert new_maps(tmp_path, pose_frames(session.stamps_ns[arrived] / NS, T)) == [], \
+                f"session {session.index} x{scale}"
+
+
+def test_lost_odometry_covariance_starts_one_new_map(tmp_path):
+    route = drive([(0, 0), (4, 0)])
+    lost = np.diag([9999.0] * 6)
+    frames = pose_frames(np.arange(len(route), dtype=float), route)
+    frames += [SensorFrame(int((len(route) + k) * NS), route[-1], lost) for k in range(3)]
+    frames += pose_frames(len(route) + 3 + np.arange(3, dtype=float), route[-1:].repeat(3, axis=0))
+    assert new_maps(tmp_path, frames) == [len(route)]
+
+
+def test_reset_detection_parameters(tmp_path):
+    # RTAB-Map's RGBD/NewMapOdomChangeDistance = 0 turns the jump rules off (identity and
+    # covariance remain, as RTAB-Map's defaults).
+    params = Params().with_overrides(["RGBD/NewMapOdomChangeDistance=0"])
+    assert params.graph.odom_reset_jump == 0
+    before = drive([(0, 0), (6, 0)])
+    after = transforms.from_xy_yaw(-12.0, 20.0, 1.0) @ drive([(0, 0), (2, 0)])
+    frames = pose_frames(np.arange(len(before) + len(after), dtype=float), np.concatenate([before, after]))
+    assert new_maps(tmp_path, frames, params) == []
+    assert new_maps(tmp_path, frames) == [len(before)]
+    for bad in ("graph.odom_reset_jump=-1", "graph.odom_reset_speed=nan", "graph.odom_reset_max_gap=0"):
+        with pytest.raises(ValueError):
+            Params().with_overrides([bad])
+
+
+def test_reset_odometry_restarts_at_identity_and_keeps_the_motion(sessions):
+    T = sessions[0].T_odom_base
+    reset = reset_odometry(T, 50)
+    assert np.array_equal(reset[:50], T[:50]) and np.array_equal(reset[50], np.eye(4))
+    for k in (51, 120, len(T) - 1):
+        np.testing.assert_allclose(transforms.relative(reset[k - 1], reset[k]), transforms.relative(T[k - 1], T[k]),
+                                   atol=1e-9)
+
+
+# -- local map after a merge and a failed optimisation -----------------------------------------
+
+def test_local_map_after_a_rehearsal_merge_and_a_failed_optimisation(tmp_path):
+    # The robot drives 5 nodes, a loop closure with a corrupt (NaN) information matrix makes every
+    # optimisation fail from then on, and the robot stops: the next location is merged into by
+    # rehearsal (same image, same pose). The local map keeps its last solution, without the
+    # location that no longer exists (it raised KeyError).
+    sequence = make_sequence(6, seed=1)
+    with Rtabmap(Params(), tmp_path / "m.db") as rtabmap:
+        for k in range(5):
+            rtabmap.process(SensorFrame(k * NS, transforms.from_xy_yaw(0.5 * k, 0, 0), rgb=sequence.image(k)))
+        memory = rtabmap.memory
+        before = rtabmap.local_map()
+        last = max(before.poses)
+        first = min(before.poses)
+        memory.add_loop_closure(Link(last, first, LinkType.LOOP_INTRA, transforms.relative(
+            before.poses[last], before.poses[first]), np.full((6, 6), np.nan)))
+        stats = rtabmap.process(SensorFrame(5 * NS, transforms.from_xy_yaw(2.0, 0, 0), rgb=sequence.image(4)))
+        assert stats.merged_id == last
+        local = rtabmap.local_map()
+        assert last not in local.poses and set(local.poses) == set(before.poses) - {last}
+        assert set(local.map_ids) == set(local.poses) <= set(memory.signatures)
+        assert all(l.from_id in local.poses and l.to_id in local.poses for l in local.links)
+        for node, pose in local.poses.items():
+            np.testing.assert_allclose(pose, before.poses[node])
