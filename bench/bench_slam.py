@@ -9,13 +9,19 @@ Parts (``--parts``, default all):
   ``ground_truth.txt`` after ONE rigid alignment for all sessions, false loop closures (ground
   truth of the two nodes > 1 m or 30 deg apart), per-step time medians;
 * ``independent`` (experiment 1): each session alone (memory cleared), ATE per session;
-* ``no_time_limit``: ``multi`` with T_time = 0 (every node stays in WM).
+* ``no_time_limit``: ``multi`` with T_time = 0 (every node stays in WM);
+* ``low_time``: ``multi`` with T_time = 0.1 s, where memory management must act: frames over
+  T_time, WM at the end and at most, transfers, retrievals per session;
+* ``long`` (with ``--long-data DIR``, e.g. ``rtabmap-ros2 simulate --sessions 30``, 10,000+
+  frames): the same at ``--long-time-threshold`` (default 0.1 s): pTime p99 / max, RSS when WM
+  stopped growing and at the end.
 
 The baseline measured in the same run is odometry alone: the ATE of the raw odometry poses (each
 session aligned on its own, which favours the baseline). Paper numbers (AZIMUT-3, 5 sessions,
 750 m, 2074 nodes) are printed next to ours.
 
-Usage: ``python bench/bench_slam.py [--quick] [--data DIR] [--parts multi,independent,no_time_limit]``.
+Usage: ``python bench/bench_slam.py [--quick] [--data DIR] [--parts multi,low_time,independent,no_time_limit,long]
+[--long-data DIR]``.
 ``--data`` defaults to bench/data/sim5 (``--quick``: bench/data/sim2_small), simulated when missing.
 Writes ``bench/results/slam.json`` (``slam_quick.json`` with ``--quick``).
 """
@@ -26,6 +32,7 @@ import argparse
 import json
 import logging
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -44,6 +51,9 @@ from rtabmap_ros2.io.trajectory import Trajectory, associate, ate, read_tum
 
 REPO = Path(__file__).resolve().parents[1]
 # A loop closure is false when the ground-truth poses of its nodes are farther apart than this.
+RSS_EVERY = 100  # frames between memory samples
+# The low-T_time run (memory management must act) and the long run (--long-data, 10,000+ frames).
+LOW_TIME_THRESHOLD_MS = 100.0
 FALSE_LOOP_DISTANCE_M = 1.0
 FALSE_LOOP_ANGLE_RAD = np.deg2rad(30.0)
 # A loop closure link is wrong when its transform is farther than this from the ground truth's.
@@ -156,14 +166,27 @@ def odometry_ate(gmap, gt: Trajectory) -> dict:
     return {"rmse_m": float(np.sqrt(sq / max(n, 1))), "per_session_m": per}
 
 
+def rss_mb() -> float:
+    """Resident set size of this process (MB)."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
 def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_dir: Path, label: str) -> dict:
     """Map ``bags`` in one memory, export, evaluate."""
     stats_rows: list[dict] = []
     loops: list[dict] = []
     node_stamp: dict[int, int] = {}
+    memory_samples: list[dict] = []  # every RSS_EVERY frames: frame, WM size, RSS
+    retrieved_per_session: dict[int, int] = {}
+
+    cpu_marks = [time.thread_time()]  # main thread CPU at each frame's end: CPU per frame
 
     def on_stats(s) -> None:
+        cpu_marks.append(time.thread_time())
         stats_rows.append(s.to_dict())
+        if len(stats_rows) % RSS_EVERY == 0:
+            memory_samples.append({"frame": len(stats_rows), "wm_size": s.wm_size, "rss_mb": round(rss_mb(), 1)})
         if s.location_id:
             node_stamp[s.location_id] = s.stamp_ns
         if s.loop_closure_id:
@@ -171,13 +194,27 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
                           "old_stamp_ns": node_stamp.get(s.loop_closure_id, -1), "type": s.loop_closure_type})
 
     datasets = [(b.name, BagDataset(b, sync=params.sync)) for b in bags]
+    usage0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     with Rtabmap(params, db, delete_existing=True) as rtabmap:
+        retrieve = rtabmap.memory.retrieve
+
+        def counted_retrieve(hypothesis_id: int) -> list[int]:
+            ids = retrieve(hypothesis_id)  # observed, not replaced: which sessions come back
+            for n in ids:
+                m = rtabmap.memory.map_ids[n]
+                retrieved_per_session[m] = retrieved_per_session.get(m, 0) + 1
+            return ids
+
+        rtabmap.memory.retrieve = counted_retrieve
         sessions = map_datasets(rtabmap, datasets, progress=False, on_statistics=on_stats,
                                 print_line=lambda line: print(f"  [{label}] {line}", flush=True))
         local = rtabmap.local_map()
         rtabmap.flush()
     elapsed = time.perf_counter() - t0
+    usage1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu_s = (usage1.ru_utime - usage0.ru_utime) + (usage1.ru_stime - usage0.ru_stime)
+    cpu_ms = np.diff(np.asarray(cpu_marks)) * 1000.0
     t1 = time.perf_counter()
     summary = export_global_map(db, out_dir, params)
     export_s = time.perf_counter() - t1
@@ -202,8 +239,15 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
     return {
         "frames": len(stats_rows), "elapsed_s": round(elapsed, 1),
         "frames_per_s": round(len(stats_rows) / elapsed, 3),
+        # Less sensitive to other jobs on a shared machine than wall time: CPU seconds of the
+        # whole process (every thread) per frame, and the main thread's CPU per frame.
+        "cpu_s": round(cpu_s, 1), "frames_per_cpu_s": round(len(stats_rows) / max(cpu_s, 1e-9), 3),
+        "main_thread_cpu_ms": {"median": float(np.median(cpu_ms)), "p95": float(np.percentile(cpu_ms, 95)),
+                               "p99": float(np.percentile(cpu_ms, 99)), "max": float(cpu_ms.max())},
         "ptime_ms": {"median": float(np.median(ptime)), "p95": float(np.percentile(ptime, 95)),
-                     "max": float(ptime.max()),
+                     "p99": float(np.percentile(ptime, 99)), "max": float(ptime.max()),
+                     "over_T_ratio": float(np.mean(ptime > params.memory.time_threshold_ms))
+                     if params.memory.time_threshold_ms > 0 else None,
                      "over_T": int(np.sum(ptime > params.memory.time_threshold_ms))
                      if params.memory.time_threshold_ms > 0 else None},
         "time_medians_ms": {k: float(np.median([r[f"time_{k}_ms"] for r in stats_rows])) for k in TIMING_KEYS},
@@ -214,6 +258,11 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
                       "p95_ptime_ms": round(float(np.percentile(s.process_times_ms, 95)), 1),
                       "wm_size_end": s.wm_size} for s in sessions],
         "nodes": summary["nodes"], "wm_size": summary["nodes_in_wm"],
+        "wm_max": int(max(r["wm_size"] for r in stats_rows)),
+        "retrieved": int(sum(r["retrieved"] for r in stats_rows)),
+        "transferred": int(sum(r["transferred"] for r in stats_rows)),
+        "retrieved_per_session": [retrieved_per_session.get(m, 0) for m in sorted(wm_per_session)],
+        "memory": memory_summary(memory_samples),
         "wm_per_session": [wm_per_session.get(m, 0) for m in sorted(wm_per_session)],
         "local_map_size": len(local.poses),
         "local_map_per_session": [local_per_session.get(m, 0) for m in sorted(wm_per_session)],
@@ -230,6 +279,16 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
     }
 
 
+def memory_summary(samples: list[dict]) -> dict:
+    """RSS when WM stopped growing (first sample at 95 % of the largest WM) and at the end."""
+    if not samples:
+        return {}
+    wm_max = max(x["wm_size"] for x in samples)
+    settled = next(x for x in samples if x["wm_size"] >= 0.95 * wm_max)
+    return {"wm_settled_frame": settled["frame"], "rss_mb_settled": settled["rss_mb"],
+            "rss_mb_end": samples[-1]["rss_mb"], "samples": samples}
+
+
 def run_independent(bags: list[Path], tmp: Path, params: Params, gt: Trajectory, out_root: Path) -> dict:
     """Experiment 1: each session with its own memory."""
     out = {}
@@ -241,10 +300,21 @@ def run_independent(bags: list[Path], tmp: Path, params: Params, gt: Trajectory,
 
 def print_table(results: dict) -> None:
     # (label, key path in our results, key in PAPER[part])
-    rows = [("frames/s of map", ("frames_per_s",), None), ("pTime median (ms)", ("ptime_ms", "median"), None),
-            ("pTime p95 (ms)", ("ptime_ms", "p95"), None), ("pTime max (ms)", ("ptime_ms", "max"), "max_ptime_ms"),
-            ("frames over T", ("ptime_ms", "over_T"), None), ("nodes", ("nodes",), "nodes"),
-            ("WM size at end", ("wm_size",), "wm_size"), ("WM per session", ("wm_per_session",), "wm_per_session"),
+    rows = [("frames/s of map", ("frames_per_s",), None), ("frames per CPU second", ("frames_per_cpu_s",), None),
+            ("main thread CPU ms/frame median", ("main_thread_cpu_ms", "median"), None),
+            ("main thread CPU ms/frame p95", ("main_thread_cpu_ms", "p95"), None),
+            ("main thread CPU ms/frame max", ("main_thread_cpu_ms", "max"), None),
+            ("pTime median (ms)", ("ptime_ms", "median"), None),
+            ("pTime p95 (ms)", ("ptime_ms", "p95"), None), ("pTime p99 (ms)", ("ptime_ms", "p99"), None),
+            ("pTime max (ms)", ("ptime_ms", "max"), "max_ptime_ms"),
+            ("frames over T", ("ptime_ms", "over_T"), None), ("frames over T (ratio)", ("ptime_ms", "over_T_ratio"), None),
+            ("nodes", ("nodes",), "nodes"),
+            ("WM size at end", ("wm_size",), "wm_size"), ("WM size max", ("wm_max",), None),
+            ("WM per session", ("wm_per_session",), "wm_per_session"),
+            ("transferred", ("transferred",), None), ("retrieved", ("retrieved",), None),
+            ("retrieved per session", ("retrieved_per_session",), None),
+            ("RSS when WM settled (MB)", ("memory", "rss_mb_settled"), None),
+            ("RSS at end (MB)", ("memory", "rss_mb_end"), None),
             ("local map size", ("local_map_size",), "local_map_size"),
             ("local map per session", ("local_map_per_session",), "local_map_per_session"),
             ("loop closures intra", ("loop_intra",), "loop_intra"),
@@ -269,7 +339,7 @@ def print_table(results: dict) -> None:
             return ",".join(str(x) for x in v)
         return "" if v is None else str(v)
 
-    parts = [p for p in ("multi", "no_time_limit") if p in results]
+    parts = [p for p in ("multi", "low_time", "no_time_limit", "long") if p in results]
     print(f"{'':34s}" + "".join(f"{p:>24s}{'paper':>22s}" for p in parts))
     for label, path, paper_key in rows:
         line = f"{label:34s}"
@@ -292,7 +362,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="the 2 small sessions")
     parser.add_argument("--data", type=Path, default=None, help="simulated bags + ground_truth.txt")
-    parser.add_argument("--parts", default="multi,independent,no_time_limit")
+    parser.add_argument("--parts", default="multi,low_time,independent,no_time_limit")
+    parser.add_argument("--long-data", type=Path, default=None, help="simulated bags of the long run")
+    parser.add_argument("--long-time-threshold", type=float, default=LOW_TIME_THRESHOLD_MS,
+                        help="T_time of the long run (ms)")
     parser.add_argument("--config", default=None, help="parameter file (default: config/rtabmap.yaml)")
     parser.add_argument("--set", action="append", default=[], dest="overrides", metavar="NAME=VALUE")
     parser.add_argument("--out", type=Path, default=None, help="results JSON")
@@ -322,6 +395,22 @@ def main(argv=None) -> int:
     if "multi" in parts:
         print("== multi-session (experiment 2), T_time =", params.memory.time_threshold_ms, "ms", flush=True)
         results["multi"] = run_mapping(bags, work / "multi.db", params, gt, work / "multi_export", "multi")
+        save()
+    if "low_time" in parts:
+        print("== multi-session, T_time =", LOW_TIME_THRESHOLD_MS, "ms", flush=True)
+        results["low_time"] = run_mapping(bags, work / "low_time.db",
+                                          params.with_value("memory.time_threshold_ms", LOW_TIME_THRESHOLD_MS),
+                                          gt, work / "low_time_export", "low T")
+        save()
+    if "long" in parts:
+        if args.long_data is None:
+            parser.error("--parts long needs --long-data DIR")
+        long_bags = bags_of(args.long_data)
+        print(f"== long run: {len(long_bags)} sessions, T_time = {args.long_time_threshold} ms", flush=True)
+        results["long"] = run_mapping(long_bags, work / "long.db",
+                                      params.with_value("memory.time_threshold_ms", args.long_time_threshold),
+                                      read_tum(args.long_data / "ground_truth.txt"), work / "long_export", "long")
+        results["long"]["data"] = str(args.long_data)
         save()
     if "no_time_limit" in parts:
         print("== multi-session without T_time", flush=True)

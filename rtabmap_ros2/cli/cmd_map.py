@@ -5,22 +5,43 @@ multi-session trial, with one memory (one :class:`~rtabmap_ros2.core.rtabmap.Rta
 database) kept between them. A new map (session) starts with every bag and whenever odometry
 is reset inside a bag. Prints a progress bar, one line per session (nodes, WM size, intra /
 inter-session loop closures, max pTime) and a final line; writes the parameters used to
-``params.yaml`` next to the database. Sensor mounts come from each bag's ``/tf_static``; for a bag
-without it, ``--set base_to_laser=[x,y,z,roll,pitch,yaw]`` and ``--set base_to_camera=[...]`` (the
-camera's optical frame) give them. Frames with bad sensor data are skipped with a warning.
+``params.yaml`` next to the database, and with ``--stats FILE.csv`` one row per frame
+(:data:`STATS_COLUMNS`, as ``detect``'s ``detections.csv``). Sensor mounts come from each bag's
+``/tf_static``; for a bag without it, ``--set base_to_laser=[x,y,z,roll,pitch,yaw]`` and ``--set
+base_to_camera=[...]`` (the camera's optical frame) give them. Frames with bad sensor data are
+skipped with a warning.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import csv
 import logging
+import queue
+import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Optional
+from typing import Callable, Iterable, Iterator, Optional
 
 from rtabmap_ros2.cli.common_args import add_param_arguments
 
 log = logging.getLogger(__name__)
+
+# --stats FILE.csv columns (issue 14): one row per processed frame; stamp in seconds.
+STATS_COLUMNS = ("frame", "stamp", "location_id", "map_id", "loop_closure_id", "loop_closure_type",
+                 "process_time_ms", "time_optimization_ms", "wm_size", "local_map_size", "retrieved",
+                 "transferred")
+
+
+def stats_row(stats) -> dict:
+    """The :data:`STATS_COLUMNS` of one frame's Statistics."""
+    return {"frame": stats.frame_index, "stamp": f"{stats.stamp_ns / 1e9:.9f}", "location_id": stats.location_id,
+            "map_id": stats.map_id, "loop_closure_id": stats.loop_closure_id,
+            "loop_closure_type": stats.loop_closure_type, "process_time_ms": round(stats.process_time_ms, 3),
+            "time_optimization_ms": round(float(stats.timings_ms.get("optimization", 0.0)), 3),
+            "wm_size": stats.wm_size, "local_map_size": stats.local_map_size, "retrieved": stats.retrieved,
+            "transferred": stats.transferred}
 
 
 @dataclass
@@ -56,8 +77,56 @@ def add_parser(subparsers) -> None:
                         help="map database; an existing one is continued in a new session")
     parser.add_argument("--overwrite", action="store_true", help="delete an existing database first")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--stats", metavar="FILE.csv", default=None,
+                        help="write one row per frame: " + ", ".join(STATS_COLUMNS))
     add_param_arguments(parser, default_config="rtabmap.yaml")
     parser.set_defaults(func=run)
+
+
+# Frames decoded ahead by a reader thread while the current one is processed (JPEG / PNG decoding
+# releases the GIL: on 2 cores it overlaps with the frame's processing).
+PREFETCH_FRAMES = 2
+
+
+def prefetched(frames: Iterable, depth: int = PREFETCH_FRAMES) -> Iterator:
+    """Items of ``frames`` produced by a background thread, up to ``depth`` ahead; an exception
+    raised while producing them is raised here, in order."""
+    items: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def produce() -> None:
+        try:
+            for item in frames:
+                while not stop.is_set():
+                    try:
+                        items.put((item, None), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            items.put((end, None))
+        except BaseException as exc:  # handed to the consumer
+            items.put((end, exc))
+
+    thread = threading.Thread(target=produce, name="rtabmap-frame-reader", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, exc = items.get()
+            if exc is not None:
+                raise exc
+            if item is end:
+                return
+            yield item
+    finally:
+        stop.set()
+        while thread.is_alive():
+            try:
+                items.get_nowait()
+            except queue.Empty:
+                thread.join(0.05)
 
 
 def map_datasets(rtabmap, datasets: Iterable[tuple[str, object]], progress: bool = True,
@@ -85,7 +154,7 @@ def map_datasets(rtabmap, datasets: Iterable[tuple[str, object]], progress: bool
         if index:
             rtabmap.trigger_new_map()  # one session per bag
         bar = tqdm(total=len(dataset), desc=name, unit="frame", disable=not progress, leave=False)
-        for frame in dataset:
+        for frame in prefetched(dataset):
             bar.update(1)
             try:
                 stats = rtabmap.process(frame)
@@ -136,13 +205,22 @@ def run(args: argparse.Namespace) -> int:
     db_path = Path(args.db).expanduser()
     if not db_path.parent.is_dir():
         raise BagError(f"--db {db_path}: folder {db_path.parent} does not exist")
+    stats_path = Path(args.stats).expanduser() if args.stats else None
+    if stats_path is not None and not stats_path.parent.is_dir():
+        raise BagError(f"--stats {stats_path}: folder {stats_path.parent} does not exist")
     # Sensor mounts: the bag's /tf_static; where it has none, --set base_to_laser / base_to_camera.
     mounts = {"fallback_T_base_laser": from_xyz_rpy(params.node.base_to_laser),
               "fallback_T_base_camera": from_xyz_rpy(params.node.base_to_camera)}
     datasets = [(Path(b).name, BagDataset(b, sync=params.sync, **mounts)) for b in args.bags]
     t0 = time.perf_counter()
-    with Rtabmap(params, db_path, delete_existing=args.overwrite) as rtabmap:
-        sessions = map_datasets(rtabmap, datasets, progress=not args.no_progress)
+    with Rtabmap(params, db_path, delete_existing=args.overwrite) as rtabmap, \
+            (open(stats_path, "w", newline="") if stats_path else contextlib.nullcontext()) as stats_file:
+        on_statistics = None
+        if stats_file is not None:
+            writer = csv.DictWriter(stats_file, fieldnames=STATS_COLUMNS)
+            writer.writeheader()
+            on_statistics = lambda stats: writer.writerow(stats_row(stats))  # noqa: E731
+        sessions = map_datasets(rtabmap, datasets, progress=not args.no_progress, on_statistics=on_statistics)
         rtabmap.flush()
     elapsed = time.perf_counter() - t0
     params.to_yaml(db_path.parent / "params.yaml")
@@ -150,5 +228,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"total: {len(sessions)} sessions, {frames} frames, {sum(s.nodes for s in sessions)} nodes, "
           f"loop closures intra {sum(s.loop_intra for s in sessions)} / inter {sum(s.loop_inter for s in sessions)}, "
           f"max pTime {max((s.max_process_time_ms for s in sessions), default=0.0):.0f} ms, "
-          f"{elapsed:.1f} s ({frames / max(elapsed, 1e-9):.2f} frames/s) -> {db_path}")
+          f"{elapsed:.1f} s ({frames / max(elapsed, 1e-9):.2f} frames/s) -> {db_path}"
+          + (f", statistics -> {stats_path}" if stats_path else ""))
     return 0

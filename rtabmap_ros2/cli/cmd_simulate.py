@@ -17,7 +17,8 @@ def add_parser(subparsers) -> None:
         description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--sessions", type=int, default=None,
-                        help="number of sessions (default: 5, or 2 with --small)")
+                        help="number of sessions (default: 5, or 2 with --small); more drive the same routes "
+                             "again with other speeds and noise (30: about 10,000 frames)")
     parser.add_argument("--seed", type=int, default=0, help="textures, speeds, odometry and sensor noise")
     parser.add_argument("--small", action="store_true",
                         help="2 short sessions (~50 frames each) for quick tests")

@@ -216,14 +216,31 @@ class SensorBlobs:
     rgb_jpeg: Optional[bytes] = None
     depth_png16_mm: Optional[bytes] = None
     odom_covariance: Optional[np.ndarray] = None
+    # Images still to encode (:meth:`deferred`): (rgb, depth_m), encoded by :meth:`encoded`.
+    pending: Optional[tuple[Optional[np.ndarray], Optional[np.ndarray]]] = field(default=None, repr=False,
+                                                                                  compare=False)
 
     @classmethod
     def encode(cls, rgb: Optional[np.ndarray] = None, depth_m: Optional[np.ndarray] = None,
                odom_covariance: Optional[np.ndarray] = None) -> "SensorBlobs":
         """Encode an HxWx3 uint8 RGB image and an HxW float32 depth (m), either may be None."""
-        return cls(None if rgb is None else encode_rgb(rgb),
-                   None if depth_m is None else encode_depth(depth_m),
-                   None if odom_covariance is None else np.asarray(odom_covariance, dtype=np.float64))
+        return cls.deferred(rgb, depth_m, odom_covariance).encoded()
+
+    @classmethod
+    def deferred(cls, rgb: Optional[np.ndarray] = None, depth_m: Optional[np.ndarray] = None,
+                 odom_covariance: Optional[np.ndarray] = None) -> "SensorBlobs":
+        """The images kept (copied) as they are, encoded later by :meth:`encoded`: the background
+        writer does it, off the frame's critical path (JPEG + 16-bit PNG took ~8 ms a frame)."""
+        return cls(None, None, None if odom_covariance is None else np.asarray(odom_covariance, dtype=np.float64),
+                   pending=(None if rgb is None else np.array(rgb), None if depth_m is None else np.array(depth_m)))
+
+    def encoded(self) -> "SensorBlobs":
+        """These blobs with the pending images encoded (self when none is pending)."""
+        if self.pending is None:
+            return self
+        rgb, depth_m = self.pending
+        return SensorBlobs(self.rgb_jpeg if rgb is None else encode_rgb(rgb),
+                           self.depth_png16_mm if depth_m is None else encode_depth(depth_m), self.odom_covariance)
 
     def rgb(self) -> Optional[np.ndarray]:
         """Decoded HxWx3 uint8 RGB image, or None."""
@@ -428,7 +445,7 @@ def _prepare(batch: WriteBatch) -> _Rows:
                 if cov.shape != (6, 6):
                     raise DatabaseError(f"{what} odometry covariance must be 6x6, got shape {cov.shape}")
                 covariance = np.ascontiguousarray(cov).tobytes()
-            rows.sensor_data.append((node_id, blobs.rgb_jpeg, blobs.depth_png16_mm, covariance))
+            rows.sensor_data.append((node_id, blobs, covariance))  # images encoded by _apply
     for node_id, word_ids in batch.location_words.items():
         ids = np.ascontiguousarray(word_ids, dtype=np.int64)
         if ids.ndim != 1:
@@ -497,7 +514,11 @@ def _apply_statements(conn: sqlite3.Connection, rows: _Rows) -> None:
     many("INSERT OR REPLACE INTO scans VALUES (?, ?, ?, ?, ?, ?, ?)", rows.scans)
     many("DELETE FROM cameras WHERE node_id = ?", rows.camera_deletes)
     many("INSERT OR REPLACE INTO cameras VALUES (?, ?, ?, ?, ?, ?, ?, ?)", rows.cameras)
-    many("INSERT OR REPLACE INTO sensor_data VALUES (?, ?, ?, ?)", rows.sensor_data)
+    sensor_rows = []
+    for node_id, blobs, covariance in rows.sensor_data:
+        blobs = blobs.encoded()
+        sensor_rows.append((node_id, blobs.rgb_jpeg, blobs.depth_png16_mm, covariance))
+    many("INSERT OR REPLACE INTO sensor_data VALUES (?, ?, ?, ?)", sensor_rows)
     for blob, node_id, n in rows.word_updates:
         stored = ex("SELECT n_words FROM nodes WHERE id = ?", (node_id,)).fetchone()
         if stored is None:

@@ -76,6 +76,9 @@ class Graph:
 
     def __init__(self, links: Iterable[Link] = ()) -> None:
         self._adjacency: dict[int, dict[int, Link]] = {}
+        # Bumped by every link added or removed: tells a caller whether anything changed since
+        # it last looked (the local map's leaf update).
+        self.version = 0
         for link in links:
             self.add_link(link)
 
@@ -84,15 +87,18 @@ class Graph:
 
     def add_link(self, link: Link) -> None:
         """Add (or replace) the link between two nodes."""
+        self.version += 1
         self._adjacency.setdefault(link.from_id, {})[link.to_id] = link
         self._adjacency.setdefault(link.to_id, {})[link.from_id] = link
 
     def remove_link(self, a: int, b: int) -> None:
+        self.version += 1
         self._adjacency.get(a, {}).pop(b, None)
         self._adjacency.get(b, {}).pop(a, None)
 
     def remove_node(self, node_id: int) -> list[Link]:
         """Remove a node and return its links (oriented from it)."""
+        self.version += 1
         links = [link.oriented_from(node_id) for link in self._adjacency.pop(node_id, {}).values()]
         for link in links:
             self._adjacency.get(link.to_id, {}).pop(node_id, None)
@@ -148,6 +154,15 @@ class Graph:
                 queue.append(other)
         return dist
 
+    def links_within(self, nodes: set[int] | Mapping[int, object]) -> list[Link]:
+        """Links whose two ends are in ``nodes``, each once, as stored (no re-orientation)."""
+        out = []
+        for node in nodes:
+            for other, link in self._adjacency.get(node, {}).items():
+                if node < other and other in nodes:
+                    out.append(link)
+        return out
+
     def component(self, start: int, allowed: Mapping[int, object] | set[int] | None = None) -> set[int]:
         """Nodes connected to ``start`` (through ``allowed`` nodes only, if given)."""
         return set(self.hops_from(start, max_hops=1 << 30, allowed=allowed))
@@ -167,6 +182,45 @@ def connected_components(node_ids: Iterable[int], links: Iterable[Link]) -> list
         remaining -= comp
     components.sort(key=len, reverse=True)
     return components
+
+
+def bridges(node_ids: Iterable[int], links: list[Link]) -> set[int]:
+    """Indices in ``links`` of the bridges: links whose removal disconnects their two ends
+    (Tarjan's low-link, iterative; parallel links are never bridges)."""
+    adjacency: dict[int, list[tuple[int, int]]] = {n: [] for n in node_ids}
+    for index, link in enumerate(links):
+        adjacency.setdefault(link.from_id, []).append((link.to_id, index))
+        adjacency.setdefault(link.to_id, []).append((link.from_id, index))
+    order: dict[int, int] = {}
+    low: dict[int, int] = {}
+    found: set[int] = set()
+    for start in adjacency:
+        if start in order:
+            continue
+        order[start] = low[start] = len(order)
+        stack = [(start, -1, iter(adjacency[start]))]
+        while stack:
+            node, via, edges = stack[-1]
+            advanced = False
+            for other, index in edges:
+                if index == via:
+                    continue
+                if other in order:
+                    low[node] = min(low[node], order[other])
+                else:
+                    order[other] = low[other] = len(order)
+                    stack.append((other, index, iter(adjacency[other])))
+                    advanced = True
+                    break
+            if advanced:
+                continue
+            stack.pop()
+            if stack:
+                parent = stack[-1][0]
+                low[parent] = min(low[parent], low[node])
+                if low[node] > order[parent]:
+                    found.add(via)
+    return found
 
 
 def chain_poses(root_id: int, root_pose: np.ndarray, links: Iterable[Link]) -> dict[int, np.ndarray]:

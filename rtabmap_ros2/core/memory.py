@@ -332,12 +332,16 @@ class Memory:
             m = self.signatures[node].map_id
             per_map[m] = per_map.get(m, 0) + 1
         candidates = sorted((self.signatures[n].weight, n) for n in self.wm if n not in immune)
-        wanted = max(self.words_added, 1)
+        # (Not at least one word: with no new word, e.g. revisiting, every location whose words
+        # others share would go, and without words at all WM emptied in one frame.)
+        wanted = self.words_added
         # Alg. 4 stops when as many words left as came in: that bounds the vocabulary, the
         # paper's cost. Ours is per location too (Bayes filter, local map), so WM must also not
         # grow: at least as many locations leave as entered WM this frame (one from STM and the
-        # retrieved ones; 5,000-image run: transfer and retrieval cancelled, WM grew 1 a frame).
-        wanted_locations = 1 + len(self.retrieved_now)
+        # retrieved ones; 5,000-image run: transfer and retrieval cancelled, WM grew 1 a frame),
+        # plus one, as RTAB-Map's Memory::forget ("one more than total added during the
+        # iteration"): WM shrinks while pTime stays over T_time.
+        wanted_locations = 2 + len(self.retrieved_now)
         transferred: list[int] = []
         words_out = 0
         for _, node in candidates:

@@ -27,13 +27,14 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from rtabmap_ros2.core import files, transforms
-from rtabmap_ros2.core.graph import Link, LinkType, chain_poses, connected_components
+from rtabmap_ros2.core.graph import Link, LinkType, bridges, chain_poses, connected_components
 from rtabmap_ros2.core.params import GraphParams
 from rtabmap_ros2.errors import OptimizationError
 
@@ -99,12 +100,6 @@ def _to_gtsam(T: np.ndarray, planar: bool):
     return gtsam.Pose3(np.asarray(T, dtype=np.float64))
 
 
-def _from_gtsam(pose, planar: bool) -> np.ndarray:
-    if planar:
-        return transforms.from_xy_yaw(pose.x(), pose.y(), pose.theta())
-    return np.asarray(pose.matrix(), dtype=np.float64)
-
-
 def gtsam_information(information: np.ndarray, planar: bool) -> np.ndarray:
     """Our 6x6 information (x, y, z, roll, pitch, yaw) in gtsam's tangent order (3x3 or 6x6)."""
     order = POSE2_FROM_OURS if planar else POSE3_FROM_OURS
@@ -128,6 +123,45 @@ def _noise(information: np.ndarray, planar: bool, link: Link | None = None):
             f"{what}: information matrix is not positive definite ({info.tolist()}): check the link's "
             "covariance (every axis needs a finite variance > 0)")
     return gtsam.noiseModel.Gaussian.Information(info)
+
+
+# gtsam objects made from arrays or links still alive ((kind, id) -> (weak reference, planar,
+# object)): a local map is optimised again at every loop closure with mostly the same links, and
+# building the noise models (eigenvalue check), measurements and factors was most of the solve's
+# Python time at 2,000 links.
+_GTSAM_CACHE: dict[tuple[str, int], tuple] = {}
+
+
+def _cached(kind: str, array, planar: bool, make):
+    key = (kind, id(array))
+    hit = _GTSAM_CACHE.get(key)
+    if hit is not None and hit[0]() is array and hit[1] == planar:
+        return hit[2]
+    value = make(array, planar)
+    try:
+        ref = weakref.ref(array, lambda _, key=key: _GTSAM_CACHE.pop(key, None))
+    except TypeError:  # not weakly referable (a nested list): no caching
+        return value
+    _GTSAM_CACHE[key] = (ref, planar, value)
+    return value
+
+
+def _cached_noise(link: Link, planar: bool):
+    """The link's noise model (OptimizationError naming the link when its information is unusable)."""
+    return _cached("noise", link.information, planar, lambda information, p: _noise(information, p, link))
+
+
+def _plain_factor(link: Link, planar: bool):
+    if not np.all(np.isfinite(link.T_from_to)):
+        raise OptimizationError(f"link {link.from_id} -> {link.to_id}: transform has NaN or inf values")
+    return _between(link, planar, _cached_noise(link, planar))
+
+
+def _robust_factor(link: Link, planar: bool):
+    import gtsam
+
+    robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), _cached_noise(link, planar))
+    return _between(link, planar, robust)
 
 
 def is_symmetric(matrix: np.ndarray) -> bool:
@@ -159,7 +193,27 @@ def _between(link: Link, planar: bool, noise):
     import gtsam
 
     factor = gtsam.BetweenFactorPose2 if planar else gtsam.BetweenFactorPose3
-    return factor(link.from_id, link.to_id, _to_gtsam(link.T_from_to, planar), noise)
+    return factor(link.from_id, link.to_id, _cached("pose", link.T_from_to, planar, _to_gtsam), noise)
+
+
+def _poses_of(values, planar: bool) -> dict[int, np.ndarray]:
+    """Every pose of ``values`` as a 4x4 array, at once."""
+    import gtsam
+
+    keys = list(values.keys())
+    out = np.zeros((len(keys), 4, 4))
+    out[:, 3, 3] = 1.0
+    if planar:
+        xyt = gtsam.utilities.extractPose2(values).reshape(-1, 3)
+        c, s = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
+        out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
+        out[:, 2, 2] = 1.0
+        out[:, :2, 3] = xyt[:, :2]
+    else:
+        rt = gtsam.utilities.extractPose3(values).reshape(-1, 12)
+        out[:, :3, :3] = rt[:, :9].reshape(-1, 3, 3)
+        out[:, :3, 3] = rt[:, 9:]
+    return dict(zip(keys, out))
 
 
 # -- optimisation --------------------------------------------------------------------------------
@@ -204,57 +258,68 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
     initial = gtsam.Values()
     for node_id, pose in poses.items():
         initial.insert(node_id, _to_gtsam(pose, planar))
-    for link in used:
-        if not np.all(np.isfinite(link.T_from_to)):
-            raise OptimizationError(f"link {link.from_id} -> {link.to_id}: transform has NaN or inf values")
-    noises = {id(link): _noise(link.information, planar, link) for link in used}
-    chi2_initial = _chi2(used, noises, initial, planar)
+    # One Gaussian factor per link, made once: chi2 and the DCS scales are read from them.
+    plain = {id(link): _cached("factor", link, planar, _plain_factor) for link in used}
+    robust = {}
+    if params.robust:
+        # DCS on loop closures (Agarwal et al. 2013), the paper's successors' choice.
+        robust = {id(link): _cached("robust factor", link, planar, _robust_factor)
+                  for link in used if link.type.is_loop_closure}
+    factors = {**plain, **robust}
+    chi2_initial = _chi2(plain.values(), initial)
 
     kept = list(used)
     rejected: list[Link] = []
-    values, iterations = _solve(kept, noises, initial, root_id, poses[root_id], params, planar)
+    values, iterations = _solve(kept, factors, initial, root_id, poses[root_id], params, planar)
     if params.robust:
         # Robust (DCS) pass: drop loop closures the rest of the graph disagrees with, re-optimise.
         # From a poor initial guess DCS can leave a few true loop closures unsatisfied: rejected
         # links that agree with the re-optimised solution are re-admitted (bounded rounds).
         threshold = params.robust_reject_scale
         for _ in range(ROBUST_ROUNDS):
-            scales = {id(link): _dcs_scale(link, noises[id(link)], values, planar) for link in used
-                      if link.type.is_loop_closure}
+            scales = {key: _dcs_scale(plain[key], values) for key in robust}
             bad = sorted((link for link in kept if link.type.is_loop_closure and scales[id(link)] < threshold),
                          key=lambda link: scales[id(link)])
             good_again = [link for link in rejected if scales[id(link)] >= threshold]
+            if not bad and not good_again:
+                break
             readmitted = {id(link) for link in good_again}
             rejected = [link for link in rejected if id(link) not in readmitted]
-            kept = [link for link in used if id(link) not in {id(r) for r in rejected}]
-            # Worst first, but never a link whose removal disconnects the graph: with no other
-            # path between its ends, nothing in the graph contradicts it.
-            dropped = []
-            for link in bad:
-                trial = [k for k in kept if k is not link]
-                if len(connected_components(poses.keys(), trial)) == 1:
-                    kept = trial
-                    dropped.append(link)
+            out = {id(r) for r in rejected}
+            kept = [link for link in used if id(link) not in out]
+            # Worst first, but never a link whose removal disconnects the graph (a bridge): with
+            # no other path between its ends, nothing in the graph contradicts it.
+            # Usually dropping every bad link but the bridges keeps the graph connected (then each
+            # was no bridge at its turn either); otherwise one at a time, bridges recomputed.
+            cut = {id(kept[i]) for i in bridges(poses.keys(), kept)} if bad else set()
+            dropped = [link for link in bad if id(link) not in cut]
+            out = {id(d) for d in dropped}
+            trial = [k for k in kept if id(k) not in out]
+            if dropped and len(connected_components(poses.keys(), trial)) > 1:
+                dropped, trial = [], kept
+                for link in bad:
+                    cut = {id(trial[i]) for i in bridges(poses.keys(), trial)}
+                    if id(link) not in cut:
+                        trial = [k for k in trial if k is not link]
+                        dropped.append(link)
+            kept = trial
             if not dropped and not good_again:
                 break
             rejected += dropped
-            values, more = _solve(kept, noises, values, root_id, poses[root_id], params, planar)
+            values, more = _solve(kept, factors, values, root_id, poses[root_id], params, planar)
             iterations += more
         if rejected:
             logger.debug("robust optimisation rejected %d loop closure(s): %s", len(rejected),
                         [(l.from_id, l.to_id) for l in rejected])
-    chi2_final = _chi2(kept, noises, values, planar)
-    out = {node_id: _from_gtsam(_value(values, node_id, planar), planar) for node_id in poses}
+    chi2_final = _chi2((plain[id(link)] for link in kept), values)
+    out = _poses_of(values, planar)
     return OptimizationResult(out, chi2_initial, chi2_final, iterations, rejected, time.perf_counter() - start)
 
 
-def _value(values, key: int, planar: bool):
-    return values.atPose2(key) if planar else values.atPose3(key)
-
-
-def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np.ndarray,
+def _solve(links: list[Link], factors: dict, initial, root_id: int, root_pose: np.ndarray,
            params: GraphParams, planar: bool):
-    """Build the factor graph (robust kernels on loop closures if asked) and run the optimiser."""
+    """Run the optimiser on the links' factors (``factors``: id(link) -> factor, robust on loop
+    closures if asked) with the root held by a strong prior."""
     import gtsam
 
     graph = gtsam.NonlinearFactorGraph()
@@ -263,11 +328,7 @@ def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np
     prior = gtsam.PriorFactorPose2 if planar else gtsam.PriorFactorPose3
     graph.add(prior(root_id, _to_gtsam(root_pose, planar), root_noise))
     for link in links:
-        noise = noises[id(link)]
-        if params.robust and link.type.is_loop_closure:
-            # DCS on loop closures (Agarwal et al. 2013), the paper's successors' choice.
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), noise)
-        graph.add(_between(link, planar, noise))
+        graph.add(factors[id(link)])
     if params.optimizer == "lm":
         opt_params = gtsam.LevenbergMarquardtParams()
         cls = gtsam.LevenbergMarquardtOptimizer
@@ -293,19 +354,14 @@ def _solve(links: list[Link], noises: dict, initial, root_id: int, root_pose: np
     return values, int(optimizer.iterations())
 
 
-def _chi2(links: list[Link], noises: dict, values, planar: bool) -> float:
-    """Sum of whitened squared errors of the links (plain Gaussian noise; 2 x gtsam's error)."""
-    import gtsam
-
-    graph = gtsam.NonlinearFactorGraph()
-    for link in links:
-        graph.add(_between(link, planar, noises[id(link)]))
-    return 2.0 * graph.error(values)
+def _chi2(factors, values) -> float:
+    """Sum of whitened squared errors of Gaussian factors (2 x gtsam's error)."""
+    return 2.0 * float(sum(factor.error(values) for factor in factors))
 
 
-def _dcs_scale(link: Link, noise, values, planar: bool) -> float:
-    """DCS scale ``min(1, 2 phi / (phi + chi2_i))`` of one link at ``values``."""
-    chi2_i = 2.0 * _between(link, planar, noise).error(values)
+def _dcs_scale(factor, values) -> float:
+    """DCS scale ``min(1, 2 phi / (phi + chi2_i))`` of one link's Gaussian factor at ``values``."""
+    chi2_i = 2.0 * factor.error(values)
     return min(1.0, 2.0 * DCS_PHI / (DCS_PHI + chi2_i))
 
 

@@ -145,6 +145,12 @@ class MemoryParams:
     keep_one_node_per_session: bool = _p(
         True, "Never transfer the last WM node of a session, so no map is orphaned (2014 §IV)"
     )
+    local_immunization_ratio: float = _p(
+        0.25, "SLAM mode: at most this part of WM, the local map's nodes nearest the robot within "
+        "memory.local_radius, is protected from transfer (RTAB-Map's RGBD/LocalImmunizationRatio)", "ratio")
+    local_radius: float = _p(
+        10.0, "SLAM mode: radius around the robot of the nodes protected by "
+        "memory.local_immunization_ratio (RTAB-Map's RGBD/LocalRadius)", "m")
 
     def __post_init__(self) -> None:
         _check(self.stm_size >= 1, "memory.stm_size", self.stm_size, ">= 1")
@@ -158,6 +164,9 @@ class MemoryParams:
                self.bad_signature_ratio, "in [0, 1]")
         _check(self.time_threshold_ms >= 0.0, "memory.time_threshold_ms", self.time_threshold_ms, ">= 0")
         _check(self.max_retrieved >= 0, "memory.max_retrieved", self.max_retrieved, ">= 0")
+        _check(0.0 <= self.local_immunization_ratio <= 1.0, "memory.local_immunization_ratio",
+               self.local_immunization_ratio, "in [0, 1]")
+        _check(self.local_radius >= 0.0, "memory.local_radius", self.local_radius, ">= 0")
 
 
 @dataclass(frozen=True)
@@ -484,6 +493,8 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Kp/BadSignRatio": ("memory.bad_signature_ratio", float),
     "Rtabmap/TimeThr": ("memory.time_threshold_ms", float),
     "Rtabmap/MaxRetrieved": ("memory.max_retrieved", int),
+    "RGBD/LocalImmunizationRatio": ("memory.local_immunization_ratio", float),
+    "RGBD/LocalRadius": ("memory.local_radius", float),
     "Rtabmap/LoopThr": ("bayes.loop_threshold", float),
     "Bayes/VirtualPlacePriorThr": ("bayes.virtual_place_prior", float),
     "Kp/NndrRatio": ("vocabulary.nndr", float),

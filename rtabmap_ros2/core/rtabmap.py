@@ -158,12 +158,17 @@ class Rtabmap:
         self._new_loops: list[tuple[Link, tuple[int, int, int]]] = []
         # Verified loop closures that would join two unconnected maps, waiting for agreement.
         self._merge_candidates: list[Link] = []
-        # Last optimised pose of every node that was in a local map (an old map's own frame).
+        # Last optimised pose of every node that was in a local map (an old map's own frame),
+        # kept when the node is transferred to LTM.
         self._map_poses: dict[int, np.ndarray] = {}
         # A map merged this frame: its last optimised poses, moved onto the current one by the
         # confirming loop closure (the initial guess of the merged local map).
         self._merged_map_guess: dict[int, np.ndarray] = {}
         self._inactive_links: set[tuple[int, int]] = set()
+        # Graph version of the current local map solution (None: no valid solution to extend),
+        # and whether WM changed since (transfer, retrieval): see _leaf_update.
+        self._solved_version: Optional[int] = None
+        self._wm_changed = True
         self._grid: Optional[GridAccumulator] = None
         self._grid_poses: dict[int, np.ndarray] = {}
 
@@ -207,6 +212,7 @@ class Rtabmap:
         # Retrieval (Alg. 3): neighbours of the highest hypothesis come back from LTM.
         if hypothesis.location_id:
             stats.retrieved = len(self.memory.retrieve(hypothesis.location_id))
+            self._wm_changed |= bool(stats.retrieved)
         watch.lap("retrieval")
         # Local map (2014 §II-C), optimised every frame; graph work counts in pTime.
         if stats.location_id and frame.T_odom_base is not None:
@@ -226,9 +232,12 @@ class Rtabmap:
         threshold = self.params.memory.time_threshold_ms
         if threshold > 0 and stats.process_time_ms > threshold:
             protected = self.memory.time_neighbours(hypothesis.location_id) if hypothesis.location_id else set()
-            transferred = self.memory.transfer(protected)
+            # Loop closures held for a merge need both ends in WM to be confirmed.
+            protected |= {n for held in self._merge_candidates for n in (held.from_id, held.to_id)}
+            transferred = self.memory.transfer(protected | self._near_robot(stats.location_id))
             stats.transferred = len(transferred)
-            self._forget(transferred)
+            self._wm_changed |= bool(transferred)
+            self._forget(transferred, transferred_to_ltm=True)
         watch.lap("transfer")
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
@@ -382,13 +391,18 @@ class Rtabmap:
         self._last_odom_stamp_ns = frame.stamp_ns
         self._last_odom_lost = _odometry_lost(frame)
 
-    def _forget(self, nodes: list[int]) -> None:
+    def _forget(self, nodes: list[int], transferred_to_ltm: bool = False) -> None:
         """Nodes that left WM (transferred to LTM, or merged into the new location by rehearsal)
         leave the local map's state too: what :meth:`local_map` returns names only nodes in
-        memory, also when the next optimisation fails and the last solution is kept."""
+        memory, also when the next optimisation fails and the last solution is kept.
+
+        Transferred nodes keep their last optimised pose in ``_map_poses`` (16 floats a node, as
+        the graph kept for every node): an old map whose nodes come back from LTM is aligned with
+        them for a merge."""
         for node in nodes:
             self._optimized.pop(node, None)
-            self._map_poses.pop(node, None)
+            if not transferred_to_ltm:
+                self._map_poses.pop(node, None)
             self._merged_map_guess.pop(node, None)
         gone = set(nodes)
         self._local_links = [link for link in self._local_links if not {link.from_id, link.to_id} & gone]
@@ -425,7 +439,7 @@ class Rtabmap:
         sig = Signature(id=node_id, map_id=memory.map_id, stamp_ns=frame.stamp_ns, word_ids=word_ids,
                         keypoints=features.keypoints, points3d=points3d, T_odom_base=frame.T_odom_base,
                         scan=frame.scan, camera=frame.camera, bad=bad)
-        blobs = SensorBlobs.encode(frame.rgb, frame.depth_m, frame.odom_covariance)
+        blobs = SensorBlobs.deferred(frame.rgb, frame.depth_m, frame.odom_covariance)
         watch.lap("database")
         # Alg. 1 line 7: insert into STM with a neighbour link to the previous location.
         previous = memory.last_location()
@@ -655,15 +669,19 @@ class Rtabmap:
         """
         memory = self.memory
         component = memory.graph.component(root, allowed=memory.signatures)
-        links = _links_within(memory.graph, component)
+        links = memory.graph.links_within(component)
         root_pose = memory.signatures[root].T_odom_base
         self._inactive_links = set()
         if not any(link.type.is_loop_closure for link in links):
             # A tree of neighbour links: chaining them is the optimum. (Re-using the previous
             # poses here fed round-off back every frame: rotations lost orthonormality
-            # exponentially, x2 per frame, and poses overflowed after ~1,000 frames.)
+            # exponentially, x2 per frame, and poses overflowed after ~1,000 frames.) Planar:
+            # Pose2 chaining, as the optimiser's solution would be (and _leaf_update is).
+            if self._planar:
+                planar_links = [replace(link, T_from_to=transforms.project_planar(link.T_from_to)) for link in links]
+                return chain_poses(root, transforms.project_planar(root_pose), planar_links), links
             return chain_poses(root, root_pose, links), links
-        guess = _warm_start(root, root_pose, links, {**self._merged_map_guess, **self._optimized})
+        guess = _warm_start(root, root_pose, memory.graph, component, {**self._merged_map_guess, **self._optimized})
         self._merged_map_guess = {}
         if guess is None or not self._fits_inter_session_majority(guess, links):
             guess = consensus_guess(root, root_pose, links)
@@ -707,13 +725,79 @@ class Rtabmap:
         if memory.signatures[newest].T_odom_base is None:
             return False
         had_loops = bool(self._new_loops)
-        poses, links = self._optimize_component(newest)
+        solved, self._solved_version = self._solved_version, None
+        leaf = self._leaf_link(newest, solved)
+        if leaf is None:
+            poses, links = self._optimize_component(newest)
+            self._local_links = [link for link in links if link.key() not in self._inactive_links]
+        else:
+            poses = self._leaf_update(newest, leaf)
+            self._local_links.append(leaf)
         self._optimized = poses
+        self._solved_version = memory.graph.version
+        self._wm_changed = False
         self._map_poses.update(poses)
-        self._local_links = [link for link in links if link.key() not in self._inactive_links]
         self._T_map_odom = poses[newest] @ transforms.inverse(memory.signatures[newest].T_odom_base)
         return had_loops and not any(memory.graph.link(l.from_id, l.to_id) and l.key() not in self._inactive_links
                                      for l, _ in self._new_loops)
+
+    def _leaf_link(self, newest: int, solved: Optional[int]) -> Optional[Link]:
+        """The link from the last solution to ``newest`` when that one link is all that changed.
+
+        True when, since the last solution (graph version ``solved``), exactly one link was added,
+        it joins ``newest`` to a node of that solution, no loop closure came or went, no map was
+        merged, and WM neither lost nor gained a node. Returns it oriented towards ``newest``.
+        """
+        memory = self.memory
+        if (solved is None or self._wm_changed or self._new_loops or self._merged_map_guess
+                or memory.graph.version != solved + 1 or newest in self._optimized):
+            return None
+        links = memory.graph.links_of(newest)
+        if len(links) != 1 or links[0].to_id not in self._optimized:
+            return None
+        return links[0].inverted()
+
+    def _leaf_update(self, newest: int, link: Link) -> dict[int, np.ndarray]:
+        """The local map grown by one leaf, rooted at ``newest``: exact and O(n).
+
+        A node joined by a single link adds a factor that its own pose satisfies exactly, so the
+        optimum of the other nodes does not change (the robust kernel's decisions neither); only
+        the root moves to the new node (2014 §II-B), a rigid change of gauge of the previous
+        solution, which the between factors do not see. The result equals a batch solve's within
+        its convergence tolerance (test_local_map_incremental).
+        """
+        planar = bool(self._planar)
+        previous = self._optimized
+        T_link = transforms.project_planar(link.T_from_to) if planar else link.T_from_to
+        root_pose = self.memory.signatures[newest].T_odom_base
+        if planar:
+            root_pose = transforms.project_planar(root_pose)
+        grown = previous[link.from_id] @ T_link
+        # Re-orthonormalised: round-off of the previous poses must not feed back frame after
+        # frame (poses are composed again at every leaf).
+        align = _rigid(root_pose @ transforms.inverse(grown), planar)
+        ids = list(previous)
+        stacked = np.einsum("ij,njk->nik", align, np.stack([previous[n] for n in ids]))
+        poses = dict(zip(ids, stacked))
+        poses[newest] = root_pose
+        return poses
+
+    def _near_robot(self, newest: int) -> set[int]:
+        """SLAM mode: the WM nodes of the local map nearest the newest node, within
+        ``memory.local_radius``, at most ``memory.local_immunization_ratio`` of WM: they stay
+        in WM so the local map around the robot survives transfers (RTAB-Map's
+        RGBD/LocalImmunizationRatio and RGBD/LocalRadius, Rtabmap::process before Memory::forget)."""
+        params = self.params.memory
+        budget = int(params.local_immunization_ratio * len(self.memory.wm))
+        if budget <= 0 or newest not in self._optimized:
+            return set()
+        ids = [n for n in self._optimized if n in self.memory.wm]
+        if not ids:
+            return set()
+        xyz = np.stack([self._optimized[n][:3, 3] for n in ids])
+        distance = np.linalg.norm(xyz - self._optimized[newest][:3, 3], axis=1)
+        nearest = np.argsort(distance, kind="stable")[:budget]
+        return {ids[i] for i in nearest if distance[i] <= params.local_radius}
 
     def _fill_sizes(self, stats: Statistics) -> None:
         memory = self.memory
@@ -730,60 +814,60 @@ def _max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: bo
 
     Translation and rotation errors are taken separately (the residual transform's norm and
     angle over the link's standard deviations), as RTAB-Map's RGBD/OptimizeMaxError does.
+    All links at once (a loop closure frame checks every link of the local map).
     """
-    worst = 0.0
-    for link in links:
-        a, b = poses.get(link.from_id), poses.get(link.to_id)
-        if a is None or b is None:
-            continue
-        residual = link.residual(a, b)
-        info = np.diag(link.information)
-        if planar:
-            t_err = float(np.linalg.norm(residual[:2, 3]))
-            t_info, r_info = min(info[0], info[1]), info[5]
-            r_err = abs(transforms.yaw_of(residual))
-        else:
-            t_err = float(np.linalg.norm(residual[:3, 3]))
-            t_info, r_info = info[:3].min(), info[3:].min()
-            r_err = transforms.rotation_angle(residual)
-        worst = max(worst, t_err * np.sqrt(t_info), r_err * np.sqrt(r_info))
-    return worst
+    links = [link for link in links if link.from_id in poses and link.to_id in poses]
+    if not links:
+        return 0.0
+    A = np.stack([poses[link.from_id] for link in links])
+    B = np.stack([poses[link.to_id] for link in links])
+    T = np.stack([link.T_from_to for link in links])
+    residual = transforms.inverse_many(T) @ transforms.inverse_many(A) @ B
+    info = np.stack([np.diag(link.information) for link in links])
+    if planar:
+        t_err = np.linalg.norm(residual[:, :2, 3], axis=1)
+        t_info, r_info = np.minimum(info[:, 0], info[:, 1]), info[:, 5]
+        r_err = np.abs(np.arctan2(residual[:, 1, 0], residual[:, 0, 0]))
+    else:
+        t_err = np.linalg.norm(residual[:, :3, 3], axis=1)
+        t_info, r_info = info[:, :3].min(axis=1), info[:, 3:].min(axis=1)
+        r_err = np.arccos(np.clip((np.trace(residual[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    return float(max(np.max(t_err * np.sqrt(t_info)), np.max(r_err * np.sqrt(r_info))))
 
 
-def _links_within(graph: Graph, nodes: set[int]) -> list[Link]:
-    """Links whose two ends are in ``nodes``, each once."""
-    out = []
-    for node in nodes:
-        for link in graph.links_of(node):
-            if link.to_id in nodes and node < link.to_id:
-                out.append(link)
-    return out
-
-
-def _warm_start(root: int, root_pose: np.ndarray, links: list[Link],
+def _warm_start(root: int, root_pose: np.ndarray, graph: Graph, nodes: set[int],
                 previous: dict[int, np.ndarray]) -> Optional[dict[int, np.ndarray]]:
     """Initial guess from the previous optimised poses, new nodes chained from them by their
-    links, all moved rigidly so the root sits at ``root_pose``; None without a previous solution
-    or when it does not reach every node (a map merged this frame: its nodes are reached only
-    against the links' direction, and a guess without them put the merged map 195 std devs off)."""
-    nodes = {link.from_id for link in links} | {link.to_id for link in links} | {root}
+    links (in ``graph``, within ``nodes``), all moved rigidly so the root sits at ``root_pose``;
+    None without a previous solution or when it does not reach every node (a map merged this
+    frame: its nodes are reached only against the links' direction, and a guess without them put
+    the merged map 195 std devs off)."""
     poses = {n: previous[n] for n in nodes if n in previous}
     if not poses:
         return None
-    graph = Graph(links)
-    frontier = list(poses)
-    while frontier:
-        reached = []
-        for node in frontier:
-            for link in graph.links_of(node):
-                if link.to_id not in poses:
-                    poses[link.to_id] = poses[node] @ link.T_from_to
-                    reached.append(link.to_id)
-        frontier = reached
+    # Breadth-first from the placed nodes next to a missing one (usually the previous newest).
+    frontier = {other for n in nodes if n not in poses for other in graph.neighbors(n) if other in poses}
+    queue = deque(frontier)
+    while queue:
+        node = queue.popleft()
+        for link in graph.links_of(node):
+            if link.to_id in nodes and link.to_id not in poses:
+                poses[link.to_id] = poses[node] @ link.T_from_to
+                queue.append(link.to_id)
     if len(poses) < len(nodes):
         return None
     align = root_pose @ transforms.inverse(poses[root])
     return {n: align @ p for n, p in poses.items()}
+
+
+def _rigid(T: np.ndarray, planar: bool) -> np.ndarray:
+    """``T`` with its rotation projected back onto SO(3) (onto yaw only when ``planar``)."""
+    if planar:
+        return transforms.project_planar(T)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = np.array(T, dtype=float)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return out
 
 
 def _is_identity(T: np.ndarray) -> bool:

@@ -24,6 +24,16 @@ def inverse(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def inverse_many(T: np.ndarray) -> np.ndarray:
+    """Inverses of (N,4,4) rigid transforms."""
+    R_t = np.transpose(T[:, :3, :3], (0, 2, 1))
+    out = np.zeros_like(T, dtype=float)
+    out[:, :3, :3] = R_t
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", R_t, T[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
 def relative(T_w_a: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
     """``T_a_b = inv(T_w_a) @ T_w_b``: the motion from pose a to pose b."""
     return inverse(T_w_a) @ T_w_b

@@ -728,8 +728,15 @@ class BagDataset:
         return np.array(default)
 
     def __len__(self) -> int:
+        """Frames in the bag: synchronised sets, counted without decoding their images (a set
+        whose message cannot be converted is counted here and skipped when iterating); exact
+        once the bag has been iterated."""
         if self._len is None:
-            self._len = sum(1 for _ in self)
+            reader = _open_reader(self.path)
+            try:
+                self._len = sum(1 for _ in self._synced(reader, {"camera_info": None}))
+            finally:
+                reader.close()
         return self._len
 
     def __iter__(self) -> Iterator[SensorFrame]:
@@ -740,12 +747,21 @@ class BagDataset:
             reader.close()
 
     def _frames(self, reader) -> Iterator[SensorFrame]:
+        state = {"camera_info": None, "base_frame": self._base_frame}
+        count = 0
+        for synced in self._synced(reader, state):
+            frame = self._frame(synced, state)
+            if frame is not None:
+                count += 1
+                yield frame
+        self._len = count
+
+    def _synced(self, reader, state: dict) -> Iterator[SyncedSet]:
+        """The bag's synchronised message sets in order (camera_info kept in ``state``)."""
         topic_stream = {t: s for s, t in self.stream_topics.items()}
         conns = [c for c in reader.connections if c.topic in topic_stream]
         sync_streams = {s for s in self.streams if s != "camera_info"}
         synchronizer = FrameSynchronizer(self.sync, sync_streams) if sync_streams else None
-        state = {"camera_info": None, "base_frame": self._base_frame}
-        count = 0
         for conn, bag_ns, raw in reader.messages(connections=conns):
             stream = topic_stream[conn.topic]
             try:
@@ -764,21 +780,12 @@ class BagDataset:
                 continue
             if synchronizer is None:
                 continue
-            for synced in synchronizer.add(stream, stamp_ns, item):
-                frame = self._frame(synced, state)
-                if frame is not None:
-                    count += 1
-                    yield frame
+            yield from synchronizer.add(stream, stamp_ns, item)
         if synchronizer is not None:
-            for synced in synchronizer.flush():
-                frame = self._frame(synced, state)
-                if frame is not None:
-                    count += 1
-                    yield frame
+            yield from synchronizer.flush()
             if any(synchronizer.dropped.values()) or synchronizer.resets:
                 logger.debug("bag %s: synchroniser dropped %s, resets %d", self.path,
                              synchronizer.dropped, synchronizer.resets)
-        self._len = count
 
     def _frame(self, synced: SyncedSet, state: dict) -> Optional[SensorFrame]:
         """Convert one synchronised set to a SensorFrame; None (with a warning) when a message is bad."""

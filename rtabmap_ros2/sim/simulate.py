@@ -109,19 +109,24 @@ class SimulationSummary:
 
 
 def make_sessions(world: World, sessions: Optional[int] = None, small: bool = False) -> list[SessionTruth]:
-    """Ground truth and odometry of the sessions (all 5 by default, the 2 short ones with ``small``)."""
+    """Ground truth and odometry of the sessions (all 5 by default, the 2 short ones with ``small``).
+
+    More sessions than plans (long runs: ``--sessions 30`` is about 10,000 frames) drive the plans
+    again in turn, each time with its own speeds, stops and odometry noise (session k's random
+    draws), in the same building: session 6 revisits session 1's route.
+    """
     plans = SMALL_SESSION_PLANS if small else SESSION_PLANS
     sessions = len(plans) if sessions is None else sessions
-    if not 1 <= sessions <= len(plans):
-        raise RtabmapError(f"sessions={sessions} is out of range: the {'small' if small else 'default'} "
-                           f"simulation has 1..{len(plans)} sessions")
+    if sessions < 1:
+        raise RtabmapError(f"sessions={sessions} is out of range: at least 1 session")
     out = []
     for k in range(1, sessions + 1):
         rng = np.random.default_rng([world.seed, k, int(small)])
-        traj = plan_trajectory(world, plans[k - 1], rng)
+        plan = plans[(k - 1) % len(plans)]
+        traj = plan_trajectory(world, plan, rng)
         start_ns = (START_STAMP_S + (k - 1) * SESSION_GAP_S) * NS_PER_S
         stamps = start_ns + np.round(traj.times_s * NS_PER_S).astype(np.int64)
-        out.append(SessionTruth(index=k, plan=plans[k - 1], stamps_ns=stamps, T_world_base=traj.poses,
+        out.append(SessionTruth(index=k, plan=plan, stamps_ns=stamps, T_world_base=traj.poses,
                                 T_odom_base=wheel_odometry(traj.xy_yaw, rng),
                                 odom_covariance=step_covariance(traj.speed_mps), trajectory=traj))
     return out
@@ -272,7 +277,7 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
 
     Args:
         out_dir: output folder (created; existing ``session_*`` bags in it raise).
-        sessions: number of sessions (1-5, default 5; 1-2 with ``small``, default 2).
+        sessions: number of sessions (default 5, or 2 with ``small``; more drive the plans again).
         seed: textures, speeds, stops, odometry and sensor noise.
         small: 2 short sessions (~50 frames each, the second revisits the first) for tests.
         jobs: worker processes rendering sessions in parallel (default: min(2, CPUs)).

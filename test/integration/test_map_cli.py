@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 import sys
@@ -26,8 +27,23 @@ def small_bags(tmp_path_factory):
 @pytest.mark.slow
 def test_map_then_export_gives_one_connected_map(small_bags, tmp_path):
     db = tmp_path / "map.db"
-    result = run("map", small_bags / "session_1", small_bags / "session_2", "--db", db, "--no-progress")
+    stats = tmp_path / "stats.csv"
+    result = run("map", small_bags / "session_1", small_bags / "session_2", "--db", db, "--no-progress",
+                 "--stats", stats)
     assert result.returncode == 0, result.stderr
+    with open(stats, newline="") as f:
+        reader = csv.DictReader(f)
+        rows = list(reader)
+    assert reader.fieldnames == ["frame", "stamp", "location_id", "map_id", "loop_closure_id", "loop_closure_type",
+                                 "process_time_ms", "time_optimization_ms", "wm_size", "local_map_size",
+                                 "retrieved", "transferred"]
+    frames = int(result.stdout.splitlines()[-1].split(" frames,")[0].split()[-1])
+    assert len(rows) == frames and [int(r["frame"]) for r in rows] == list(range(frames))
+    assert {r["map_id"] for r in rows} == {"0", "1"}
+    loops = [r for r in rows if int(r["loop_closure_id"])]
+    assert loops and {r["loop_closure_type"] for r in loops} <= {"loop_intra", "loop_inter"}
+    assert all(float(r["process_time_ms"]) >= float(r["time_optimization_ms"]) >= 0 for r in rows)
+    assert int(rows[-1]["local_map_size"]) > 0 and int(rows[-1]["wm_size"]) > 0
     session_lines = [l for l in result.stdout.splitlines() if l.startswith("session ")]
     assert len(session_lines) == 2, result.stdout
     assert "inter 0 " not in session_lines[1]  # the second session closed loops with the first
@@ -47,6 +63,12 @@ def test_map_then_export_gives_one_connected_map(small_bags, tmp_path):
 def test_map_missing_bag_is_an_error(tmp_path):
     result = run("map", tmp_path / "nope", "--db", tmp_path / "map.db")
     assert result.returncode == 2 and result.stderr.splitlines()[-1].startswith("error: bag")
+
+
+def test_map_stats_in_a_missing_folder_is_an_error(small_bags, tmp_path):
+    result = run("map", small_bags / "session_1", "--db", tmp_path / "map.db", "--stats", tmp_path / "no" / "s.csv")
+    assert result.returncode == 2 and "--stats" in result.stderr.splitlines()[-1]
+    assert not (tmp_path / "map.db").exists()
 
 
 def test_export_missing_database_is_an_error(tmp_path):

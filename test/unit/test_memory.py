@@ -101,10 +101,11 @@ def test_transfer_moves_the_oldest_lowest_weighted_until_enough_words_left(tmp_p
     assert memory.ltm_size == 3
 
 
-def test_transfer_moves_at_least_one_location(tmp_path, descriptors):
+def test_transfer_moves_one_location_more_than_entered_wm(tmp_path, descriptors):
+    """As RTAB-Map's Memory::forget: WM shrinks by one per frame over T_time (lowest weight first)."""
     memory = filled(tmp_path, descriptors, {1: 1, 2: 0, 3: 2})
     memory.words_added = 0
-    assert memory.transfer(protected=set()) == [2]
+    assert memory.transfer(protected=set()) == [2, 1]
 
 
 def test_recent_part_of_wm_is_protected(tmp_path, descriptors):

@@ -1,0 +1,148 @@
+"""Incremental local map (issue 14 item 1): a frame that only adds a leaf gets the batch solution.
+
+A real pose graph sequence (the Intel lab, ../shared/data/posegraphs/intel.g2o) is fed node by
+node into an Rtabmap's memory, loop closures as they appear; after each frame the local map is
+compared with a batch solve of the same graph (same active links, root = newest node).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.graph import LinkType, chain_poses
+from rtabmap_ros2.core.optimizer import optimize, read_g2o
+from rtabmap_ros2.core.params import Params
+from rtabmap_ros2.core.rtabmap import Rtabmap
+from rtabmap_ros2.core.signature import Signature
+
+NODES = 300
+# Same solution: the batch solver's own convergence tolerance is about this.
+TOLERANCE_M = 1e-4
+TOLERANCE_RAD = 1e-5
+
+
+def _feed(rtabmap: Rtabmap, poses: dict, links: list, nodes: list[int], on_frame) -> None:
+    """Add ``nodes`` one per frame (odometry = the file's vertex poses), each with its links to
+    older nodes; loop closures go through add_loop_closure as the online ones do."""
+    memory = rtabmap.memory
+    rtabmap._planar = True
+    by_newer: dict[int, list] = {}
+    for link in links:
+        newer = max(link.from_id, link.to_id)
+        by_newer.setdefault(newer, []).append(link.oriented_from(newer) if link.from_id != newer else link)
+    for node in nodes:
+        neighbour = next((l for l in by_newer.get(node, []) if l.type is LinkType.NEIGHBOR), None)
+        sig = Signature(id=node, map_id=0, stamp_ns=node, T_odom_base=poses[node])
+        memory.add_location(sig, None, neighbour.inverted() if neighbour is not None else None)
+        memory.update_stm()
+        rtabmap._new_loops = []
+        for link in by_newer.get(node, []):
+            if link.type.is_loop_closure and link.to_id in memory.signatures:
+                rtabmap._new_loops.append((link, memory.add_loop_closure(link)))
+        rtabmap._update_local_map(node)
+        on_frame(node)
+
+
+def _batch(rtabmap: Rtabmap, root: int) -> dict[int, np.ndarray]:
+    """A fresh batch solve of the current local map's nodes and active links."""
+    links = rtabmap._local_links
+    guess = chain_poses(root, transforms.project_planar(rtabmap.memory.signatures[root].T_odom_base), links)
+    if not any(l.type.is_loop_closure for l in links):
+        return guess
+    return optimize(guess, links, root, rtabmap.params.graph, planar=True).poses
+
+
+def _difference(a: dict[int, np.ndarray], b: dict[int, np.ndarray]) -> tuple[float, float]:
+    assert a.keys() == b.keys()
+    dt = max(float(np.linalg.norm(a[n][:3, 3] - b[n][:3, 3])) for n in a)
+    dr = max(transforms.rotation_angle(transforms.relative(a[n], b[n])) for n in a)
+    return dt, dr
+
+
+def test_leaf_update_equals_the_batch_solve_on_the_intel_graph(shared_data, tmp_path):
+    poses, links, planar = read_g2o(shared_data / "posegraphs" / "intel.g2o")
+    assert planar
+    # Location ids start at 1.
+    poses = {n + 1: T for n, T in poses.items()}
+    links = [replace(l, from_id=l.from_id + 1, to_id=l.to_id + 1) for l in links]
+    nodes = sorted(poses)[:NODES]
+    kept = set(nodes)
+    links = [l for l in links if l.from_id in kept and l.to_id in kept]
+    leaves, checked = [], []
+    rtabmap = Rtabmap(Params(), tmp_path / "intel.db")
+    try:
+        def on_frame(node: int) -> None:
+            solved = rtabmap._solved_version
+            leaf = len(rtabmap.memory.graph.links_of(node)) == 1 and not rtabmap._new_loops
+            if leaf:
+                leaves.append(node)
+            if leaf and node % 5 == 0 or node == nodes[-1]:
+                assert solved is not None
+                dt, dr = _difference(rtabmap._optimized, _batch(rtabmap, node))
+                checked.append((node, dt, dr))
+                assert dt < TOLERANCE_M and dr < TOLERANCE_RAD, (node, dt, dr)
+
+        _feed(rtabmap, poses, links, nodes, on_frame)
+        # The sequence has loop closures (full solves) and leaves after them (incremental).
+        assert sum(l.type.is_loop_closure for l in rtabmap._local_links) > 20
+        assert len(leaves) > NODES / 2 and len(checked) > 20
+        assert len(rtabmap._optimized) == NODES
+    finally:
+        rtabmap.close()
+
+
+def _corridor(tmp_path, overrides: list[str]) -> Rtabmap:
+    """40 nodes along a straight corridor (0.5 m apart, one session), the newest (40) in STM; the
+    nodes nearest the robot weigh least, so the weight rule alone would transfer them first."""
+    from rtabmap_ros2.core.graph import Link, default_information
+
+    params = Params().with_overrides(["memory.stm_size=1", "memory.recent_wm_ratio=0", *overrides])
+    rtabmap = Rtabmap(params, tmp_path / "corridor.db", delete_existing=True)
+    memory = rtabmap.memory
+    rtabmap._planar = True
+    for k in range(1, 41):
+        sig = Signature(id=k, map_id=0, stamp_ns=k, T_odom_base=transforms.from_xy_yaw(0.5 * k, 0.0, 0.0),
+                        weight=41 - k)
+        link = None if k == 1 else Link(k - 1, k, LinkType.NEIGHBOR, transforms.from_xy_yaw(0.5, 0.0, 0.0),
+                                        default_information(1e-4))
+        memory.add_location(sig, None, link)
+        memory.update_stm()
+        rtabmap._update_local_map(k)
+        memory.commit()
+    return rtabmap
+
+
+def _transfer_frames(rtabmap: Rtabmap, frames: int) -> None:
+    """``frames`` frames over T_time (no new word, nothing retrieved)."""
+    for _ in range(frames):
+        rtabmap.memory.words_added = 0
+        rtabmap.memory.transfer(rtabmap._near_robot(40))
+        rtabmap.memory.commit()
+
+
+def test_transfer_keeps_the_local_map_nearest_the_robot(tmp_path):
+    """SLAM mode (RGBD/LocalImmunizationRatio, RGBD/LocalRadius): on transfer, the WM nodes of the
+    local map nearest the robot stay, at most the ratio of WM, within the radius."""
+    rtabmap = _corridor(tmp_path, ["memory.local_immunization_ratio=0.25", "memory.local_radius=10.0"])
+    try:
+        # 25 % of WM (39 nodes) = 9 nodes, the nearest first: 39..31 (0.5..4.5 m).
+        assert rtabmap._near_robot(40) == set(range(31, 40))
+        _transfer_frames(rtabmap, 5)  # 2 locations a frame (one more than entered WM)
+        assert len(rtabmap.memory.wm) == 29
+        assert set(range(34, 40)) <= set(rtabmap.memory.wm)
+        # A small radius protects fewer nodes than the ratio allows.
+        rtabmap.params = rtabmap.params.with_overrides(["memory.local_radius=1.0"])
+        assert rtabmap._near_robot(40) == {38, 39}  # 1.0 and 0.5 m away
+    finally:
+        rtabmap.close()
+    # Without it, the lightest nodes go: the ones around the robot.
+    rtabmap = _corridor(tmp_path, ["memory.local_immunization_ratio=0"])
+    try:
+        _transfer_frames(rtabmap, 5)
+        assert set(rtabmap.memory.wm).isdisjoint(range(30, 40))
+    finally:
+        rtabmap.close()
