@@ -6,6 +6,7 @@ frame; each frame waits for its ``info`` so the tests are deterministic (no timi
 
 from __future__ import annotations
 
+import contextlib
 import random
 import signal
 import subprocess
@@ -414,18 +415,32 @@ def test_silent_topics_are_reported_once(context, tmp_path, frames, capfd):
 
 
 # -- across processes ------------------------------------------------------------------------------
-def test_node_subprocess_sigterm_flushes_database(ros_env, context, tmp_path, frames):
-    db_path = tmp_path / "proc.db"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "rtabmap_ros2.ros.node", "--ros-args", "-p", f"database_path:={db_path}",
-         "-p", "qos:=reliable", "-p", f"export_dir:={tmp_path / 'exports'}"],
-        env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+@contextlib.contextmanager
+def spinning_rig(context, proc: subprocess.Popen):
+    """A SensorRig spun in a background executor next to a node process; the process is killed on exit if still running."""
     tester = SensorRig(context)
     executor = MultiThreadedExecutor(num_threads=2, context=context)
     executor.add_node(tester)
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
     try:
+        yield tester
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        executor.shutdown()
+        thread.join(timeout=10)
+        tester.destroy_node()
+
+
+def test_node_subprocess_sigterm_flushes_database(ros_env, context, tmp_path, frames):
+    db_path = tmp_path / "proc.db"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rtabmap_ros2.ros.node", "--ros-args", "-p", f"database_path:={db_path}",
+         "-p", "qos:=reliable", "-p", f"export_dir:={tmp_path / 'exports'}"],
+        env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    with spinning_rig(context, proc) as tester:
         assert wait_for(tester.connected, 60)
         for i, f in enumerate(frames[:5]):
             tester.publish_frame(f)
@@ -435,12 +450,6 @@ def test_node_subprocess_sigterm_flushes_database(ros_env, context, tmp_path, fr
         last_id = int(tester.infos()[-1]["location_id"])
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        executor.shutdown()
-        thread.join(timeout=10)
-        tester.destroy_node()
     assert proc.returncode == 0, out
     assert "flushed and closed" in out
     from rtabmap_ros2.core.database import Database
@@ -563,21 +572,10 @@ def test_unrecoverable_error_ends_the_process_non_zero(ros_env, context, tmp_pat
         [sys.executable, "-c", FATAL_NODE, "--ros-args", "-p", f"database_path:={tmp_path / 'full.db'}",
          "-p", f"export_dir:={tmp_path / 'exports'}"],
         env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    tester = SensorRig(context)
-    executor = MultiThreadedExecutor(num_threads=2, context=context)
-    executor.add_node(tester)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    try:
+    with spinning_rig(context, proc) as tester:
         assert wait_for(tester.connected, 60)
         tester.publish_frame(frames[0])
         out, _ = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        executor.shutdown()
-        thread.join(timeout=10)
-        tester.destroy_node()
     assert proc.returncode == EXIT_UNRECOVERABLE, out
     assert "unrecoverable error" in out and "disk is full" in out
 
