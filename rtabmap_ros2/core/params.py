@@ -146,9 +146,8 @@ class MemoryParams:
         0, "Most locations in WM: over it, the lowest-weighted go to LTM every frame (0 = no limit; "
         "RTAB-Map's Rtabmap/MemoryThr)", "locations")
     time_target_ratio: float = _p(
-        0.8, "After a frame over T_time, WM is capped at the size that frame would have taken this part "
-        "of T_time at (its time taken as proportional to WM); the cap rises by one location a frame "
-        "that takes less, so WM grows back only as fast as the robot adds locations", "ratio")
+        0.8, "SLAM mode: after a frame over T_time, WM is capped at the size it would have taken this part of "
+        "T_time at; the cap rises by one location per frame faster than that (core/wm_budget.py)", "ratio")
     keep_one_node_per_session: bool = _p(
         True, "Never transfer the last WM node of a session, so no map is orphaned (2014 §IV)"
     )
