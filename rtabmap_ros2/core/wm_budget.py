@@ -11,8 +11,11 @@ three, and WM grew without bound (10,000 frames: WM 9,971 of 10,338, pTime p99 9
 
 * the learnt cap: a frame over T_time caps WM at the size it would have taken
   ``time_target_ratio`` x T_time at, its time taken as proportional to WM (at most halving WM
-  at once); the cap rises by one location per frame under that time, so WM grows back no
-  faster than the robot adds locations, up to where frames approach T_time again;
+  at once); the cap rises by ``wm_cap_growth`` locations per frame under that time. The frames
+  that exceed T_time are rare kinds (a merge, a rejected loop closure: 2-4x an ordinary
+  re-solve per node), so WM must not regrow much between two of them: at one location per
+  frame (as fast as the robot adds them) WM had grown 50-100 % past the last cap when the next
+  one came, and that frame took 1.5-2.4x T_time (10,000 frames, T_time 0.2 s);
 * ``max_wm_size`` (RTAB-Map's Rtabmap/MemoryThr), a fixed cap.
 
 (Predicting the cap instead, from the recent re-solves' cost per local map node, was tried: a
@@ -36,7 +39,7 @@ class WorkingMemoryBudget:
 
     def __init__(self, params: MemoryParams) -> None:
         self.params = params
-        self._learnt: Optional[int] = None
+        self._learnt: Optional[float] = None
 
     def observe(self, process_ms: float, wm_size: int) -> None:
         """Account for one processed SLAM frame, ``wm_size`` locations in WM."""
@@ -48,9 +51,10 @@ class WorkingMemoryBudget:
             fits = max(int(wm_size * target_ms / process_ms), wm_size // 2)
             self._learnt = fits if self._learnt is None else min(self._learnt, fits)
         elif self._learnt is not None and process_ms < target_ms:
-            self._learnt += 1
+            self._learnt += self.params.wm_cap_growth
 
     def cap(self) -> Optional[int]:
         """Most locations WM should hold now (None: no cap)."""
-        caps = [c for c in (self._learnt, self.params.max_wm_size or None) if c is not None]
+        learnt = int(self._learnt) if self._learnt is not None else None
+        caps = [c for c in (learnt, self.params.max_wm_size or None) if c is not None]
         return min(caps) if caps else None

@@ -31,8 +31,8 @@ def test_a_cap_halves_wm_at_most_at_once():
     assert wm.cap() == 500
 
 
-def test_the_cap_rises_one_location_per_frame_under_the_target_time_only():
-    wm = budget("memory.time_target_ratio=0.8")
+def test_the_cap_rises_by_its_growth_per_frame_under_the_target_time_only():
+    wm = budget("memory.time_target_ratio=0.8", "memory.wm_cap_growth=1")
     wm.observe(200.0, 800)
     assert wm.cap() == 400
     for _ in range(10):
@@ -50,3 +50,11 @@ def test_memory_thr_is_a_fixed_cap_with_or_without_t_time():
     wm = budget("Rtabmap/MemoryThr=300")
     wm.observe(200.0, 400)  # learnt cap 200 < 300
     assert wm.cap() == 200
+
+
+def test_the_cap_regrows_slower_than_the_robot_adds_locations_by_default():
+    wm = budget()
+    wm.observe(200.0, 800)
+    for _ in range(100):
+        wm.observe(50.0, 400)
+    assert 400 < wm.cap() <= 420
