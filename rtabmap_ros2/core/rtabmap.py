@@ -34,7 +34,7 @@ from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
 from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, chain_poses, consensus_guess, default_information,
                                      loop_type)
 from rtabmap_ros2.core.memory import Memory
-from rtabmap_ros2.core.optimizer import load_backend, optimize
+from rtabmap_ros2.core.optimizer import load_backend, optimize, release
 from rtabmap_ros2.core.wm_budget import WorkingMemoryBudget
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.registration import assemble_scan_map, refine_neighbor_link, register, words_3d
@@ -398,6 +398,10 @@ class Rtabmap:
             if not transferred_to_ltm:
                 self._map_poses.pop(node, None)
             self._merged_map_guess.pop(node, None)
+        if transferred_to_ltm:
+            # Their caches: Bayes neighbourhoods and gtsam factors (RSS flat once WM is bounded).
+            self.bayes.transitions.forget(nodes)
+            release(link for node in nodes for link in self.memory.graph.stored_links_of(node))
         gone = set(nodes)
         self._local_links = [link for link in self._local_links if not {link.from_id, link.to_id} & gone]
 
