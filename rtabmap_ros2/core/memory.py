@@ -14,6 +14,8 @@ All database writes of a frame go in one :class:`WriteBatch` committed by the ba
 
 from __future__ import annotations
 
+from collections import deque
+
 import logging
 from typing import Callable, Iterable
 
@@ -332,28 +334,42 @@ class Memory:
         for node in self.wm:
             m = self.signatures[node].map_id
             per_map[m] = per_map.get(m, 0) + 1
-        candidates = sorted((self.signatures[n].weight, n) for n in self.wm if n not in immune)
+        # Lowest weight first (Alg. 4); among equal weights, from the session holding the most
+        # of WM, then the oldest: a session being mapped must not drain the others out of WM, or
+        # the next one finds nothing to close a loop with (5 sessions at T_time 0.1 s, oldest
+        # first: 1-5 nodes left of each of the first three, 3 components).
+        by_weight: dict[int, dict[int, deque[int]]] = {}
+        for n in sorted(n for n in self.wm if n not in immune):
+            sig = self.signatures[n]
+            by_weight.setdefault(sig.weight, {}).setdefault(sig.map_id, deque()).append(n)
         # (Not at least one word: with no new word, e.g. revisiting, every location whose words
         # others share would go, and without words at all WM emptied in one frame.)
         wanted = self.words_added if balance_words else 0
         transferred: list[int] = []
         words_out = 0
-        for _, node in candidates:
+        keep_one = self.params.memory.keep_one_node_per_session
+        for weight in sorted(by_weight):
+            maps = by_weight[weight]
+            while maps and (words_out < wanted or len(transferred) < locations):
+                m = max(maps, key=lambda k: (per_map[k], -maps[k][0]))
+                node = maps[m].popleft()
+                if not maps[m]:
+                    del maps[m]
+                if keep_one and per_map[m] <= 1:
+                    continue
+                sig = self.signatures[node]
+                orphans = self.vocabulary.remove_references(node, sig.word_ids)
+                if orphans:
+                    self.vocabulary.remove_words(np.asarray(orphans, dtype=np.int64))
+                words_out += len(orphans)
+                per_map[m] -= 1
+                del self.wm[node]
+                del self.signatures[node]
+                self._batch.in_wm[node] = False
+                self._batch.weights[node] = sig.weight
+                transferred.append(node)
             if words_out >= wanted and len(transferred) >= locations:
                 break
-            sig = self.signatures[node]
-            if self.params.memory.keep_one_node_per_session and per_map[sig.map_id] <= 1:
-                continue
-            orphans = self.vocabulary.remove_references(node, sig.word_ids)
-            if orphans:
-                self.vocabulary.remove_words(np.asarray(orphans, dtype=np.int64))
-            words_out += len(orphans)
-            per_map[sig.map_id] -= 1
-            del self.wm[node]
-            del self.signatures[node]
-            self._batch.in_wm[node] = False
-            self._batch.weights[node] = sig.weight
-            transferred.append(node)
         return transferred
 
     def _recent_immune(self) -> set[int]:

@@ -246,3 +246,19 @@ def test_rehearsal_merge_keeps_the_refined_neighbour_link(tmp_path, descriptors)
     np.testing.assert_allclose(T_3_1, expected, atol=1e-9)
     # The two links' uncertainties add up (RTAB-Map's Link::merge).
     np.testing.assert_allclose(memory.graph.link(3, 1).information, default_information(0.02))
+
+
+def test_transfer_takes_equal_weights_from_the_session_holding_most_of_wm(tmp_path, descriptors):
+    """A session being mapped must not drain the older ones out of WM: among equal weights the
+    locations go from the session with the most of WM (then the oldest), so each keeps a share."""
+    memory = make_memory(tmp_path, stm_size=1, recent_wm_ratio=0.0)
+    for node in (1, 2):
+        add(memory, node, descriptors())
+    memory.flush_stm()
+    memory.map_id = 1
+    for node in range(3, 9):
+        add(memory, node, descriptors())
+    assert set(memory.wm) == set(range(1, 8)) and memory.stm == [8]
+    memory.words_added = 0
+    # Map 1 holds 5 of WM's 7, map 0 two: 3 go from map 1 (its oldest), then one from each.
+    assert memory.transfer(protected=set(), locations=5, balance_words=False) == [3, 4, 5, 1, 6]

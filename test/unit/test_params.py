@@ -37,6 +37,7 @@ def test_defaults_are_the_papers_table_i():
     ("Rtabmap/LoopThr", "0.2", "bayes", "loop_threshold", 0.2),
     ("Rtabmap/TimeThr", "500", "memory", "time_threshold_ms", 500.0),
     ("Rtabmap/MaxRetrieved", 3, "memory", "max_retrieved", 3),
+    ("Rtabmap/MemoryThr", "500", "memory", "max_wm_size", 500),
     ("Kp/NndrRatio", "0.7", "vocabulary", "nndr", 0.7),
     ("Kp/MaxFeatures", "200", "features", "max_features", 200),
     ("Kp/BadSignRatio", "0.5", "memory", "bad_signature_ratio", 0.5),
