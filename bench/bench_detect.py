@@ -50,8 +50,10 @@ REFERENCE = REPO.parent / "shared" / "reference"
 # Issue 12 ablation: (label, --set overrides). "old defaults" are the defaults before issue 12
 # (the NNDR test d1 <= T_NNDR * d2 is in every run); each change alone on top of them, then all
 # together = the new defaults (an empty override list).
+# Epipolar verification (VhEp/Enabled) is off in the old defaults, as it was before issue 12.
 OLD_DEFAULTS = ("Kp/TfIdfLikelihoodUsed=false", "Kp/NewWordsComparedTogether=false",
-                "Mem/RehearsalSimilarity=0.2", "Rtabmap/LoopRatio=0", "Bayes/VirtualPlacePriorThr=0.9")
+                "Mem/RehearsalSimilarity=0.2", "Rtabmap/LoopRatio=0", "Bayes/VirtualPlacePriorThr=0.9",
+                "VhEp/Enabled=false")
 ABLATION = (
     ("old defaults", OLD_DEFAULTS),
     ("+ tf-idf likelihood", OLD_DEFAULTS + ("Kp/TfIdfLikelihoodUsed=true",)),
@@ -59,7 +61,11 @@ ABLATION = (
     ("+ rehearsal similarity 0.6", OLD_DEFAULTS + ("Mem/RehearsalSimilarity=0.6",)),
     ("+ loop ratio 0.9", OLD_DEFAULTS + ("Rtabmap/LoopRatio=0.9",)),
     ("+ virtual place prior 0.95", OLD_DEFAULTS + ("Bayes/VirtualPlacePriorThr=0.95",)),
+    ("+ epipolar verification", OLD_DEFAULTS + ("VhEp/Enabled=true",)),
     ("all but virtual place prior", ("Bayes/VirtualPlacePriorThr=0.9",)),
+    ("all but epipolar verification", ("VhEp/Enabled=false",)),
+    ("all + loop ratio 0.9", ("Rtabmap/LoopRatio=0.9",)),
+    ("loop ratio 0.9, no epipolar (before)", ("Rtabmap/LoopRatio=0.9", "VhEp/Enabled=false")),
     ("new defaults (all)", ()),
 )
 REVISIT_RATIO = 0.35
