@@ -323,9 +323,10 @@ class Memory:
             self.words_added += int((~replace).sum())
 
     # -- transfer (Alg. 4) ----------------------------------------------------------------------
-    def transfer(self, protected: set[int]) -> list[int]:
-        """Move the oldest of the lowest-weighted WM locations to LTM until as many words left
-        the vocabulary as came in this frame, and as many locations as entered WM."""
+    def transfer(self, protected: set[int], locations: int, balance_words: bool) -> list[int]:
+        """Move the oldest of the lowest-weighted WM locations to LTM: at least ``locations`` of
+        them and, with ``balance_words``, until as many words left the vocabulary as came in
+        this frame (Alg. 4). Returns the transferred ids."""
         immune = set(protected) | set(self.retrieved_now) | self._recent_immune()
         per_map: dict[int, int] = {}
         for node in self.wm:
@@ -334,18 +335,11 @@ class Memory:
         candidates = sorted((self.signatures[n].weight, n) for n in self.wm if n not in immune)
         # (Not at least one word: with no new word, e.g. revisiting, every location whose words
         # others share would go, and without words at all WM emptied in one frame.)
-        wanted = self.words_added
-        # Alg. 4 stops when as many words left as came in: that bounds the vocabulary, the
-        # paper's cost. Ours is per location too (Bayes filter, local map), so WM must also not
-        # grow: at least as many locations leave as entered WM this frame (one from STM and the
-        # retrieved ones; 5,000-image run: transfer and retrieval cancelled, WM grew 1 a frame),
-        # plus one, as RTAB-Map's Memory::forget ("one more than total added during the
-        # iteration"): WM shrinks while pTime stays over T_time.
-        wanted_locations = 2 + len(self.retrieved_now)
+        wanted = self.words_added if balance_words else 0
         transferred: list[int] = []
         words_out = 0
         for _, node in candidates:
-            if words_out >= wanted and len(transferred) >= wanted_locations:
+            if words_out >= wanted and len(transferred) >= locations:
                 break
             sig = self.signatures[node]
             if self.params.memory.keep_one_node_per_session and per_map[sig.map_id] <= 1:

@@ -142,6 +142,13 @@ class MemoryParams:
         700.0, "T_time: transfer WM -> LTM when the processing time exceeds it (0 = no limit)", "ms"
     )
     max_retrieved: int = _p(2, "Locations retrieved from LTM per frame (Alg. 3)", "locations")
+    max_wm_size: int = _p(
+        0, "Most locations in WM: over it, the lowest-weighted go to LTM every frame (0 = no limit; "
+        "RTAB-Map's Rtabmap/MemoryThr)", "locations")
+    time_target_ratio: float = _p(
+        0.8, "After a frame over T_time, WM is capped at the size that frame would have taken this part "
+        "of T_time at (its time taken as proportional to WM); the cap rises by one location a frame "
+        "that takes less, so WM grows back only as fast as the robot adds locations", "ratio")
     keep_one_node_per_session: bool = _p(
         True, "Never transfer the last WM node of a session, so no map is orphaned (2014 §IV)"
     )
@@ -164,6 +171,8 @@ class MemoryParams:
                self.bad_signature_ratio, "in [0, 1]")
         _check(self.time_threshold_ms >= 0.0, "memory.time_threshold_ms", self.time_threshold_ms, ">= 0")
         _check(self.max_retrieved >= 0, "memory.max_retrieved", self.max_retrieved, ">= 0")
+        _check(self.max_wm_size >= 0, "memory.max_wm_size", self.max_wm_size, ">= 0")
+        _check(0.0 < self.time_target_ratio <= 1.0, "memory.time_target_ratio", self.time_target_ratio, "in (0, 1]")
         _check(0.0 <= self.local_immunization_ratio <= 1.0, "memory.local_immunization_ratio",
                self.local_immunization_ratio, "in [0, 1]")
         _check(self.local_radius >= 0.0, "memory.local_radius", self.local_radius, ">= 0")
@@ -513,6 +522,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Kp/BadSignRatio": ("memory.bad_signature_ratio", float),
     "Rtabmap/TimeThr": ("memory.time_threshold_ms", float),
     "Rtabmap/MaxRetrieved": ("memory.max_retrieved", int),
+    "Rtabmap/MemoryThr": ("memory.max_wm_size", int),
     "RGBD/LocalImmunizationRatio": ("memory.local_immunization_ratio", float),
     "RGBD/LocalRadius": ("memory.local_radius", float),
     "Rtabmap/LoopThr": ("bayes.loop_threshold", float),

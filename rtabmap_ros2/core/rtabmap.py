@@ -10,7 +10,7 @@ One call of :meth:`Rtabmap.process` per synchronised frame:
 5. loop closure verification: RANSAC on 3D words, 2D ICP refinement (2014 §II-A) -> link;
 6. join of the previous frame's database writes (Alg. 1 line 17), retrieval (Alg. 3);
 7. local map optimisation rooted at the newest node (2014 §II-B, C);
-8. pTime; transfer WM -> LTM when pTime > T_time (Alg. 4); this frame's writes go to the
+8. pTime; transfer WM -> LTM when pTime > T_time (Alg. 4) or WM is over its cap; this frame's writes go to the
    background writer.
 """
 
@@ -34,7 +34,7 @@ from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
 from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, chain_poses, consensus_guess, default_information,
                                      loop_type)
 from rtabmap_ros2.core.memory import Memory
-from rtabmap_ros2.core.optimizer import optimize
+from rtabmap_ros2.core.optimizer import load_backend, optimize
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.registration import (assemble_scan_map, epipolar_inliers, refine_neighbor_link, register,
                                             words_3d)
@@ -135,6 +135,7 @@ class Rtabmap:
         self._open()
 
     def _open(self) -> None:
+        load_backend()
         self.db = Database(self.database_path)
         self.db.set_parameters(self.params.to_dict())
         self.memory = Memory(self.params, self.db, self.extractor.binary)
@@ -170,6 +171,8 @@ class Rtabmap:
         # and whether WM changed since (transfer, retrieval): see _leaf_update.
         self._solved_version: Optional[int] = None
         self._wm_changed = True
+        # WM size cap learnt from frames over T_time (see _manage_memory); None until one is.
+        self._wm_cap: Optional[int] = None
         self._grid: Optional[GridAccumulator] = None
         self._grid_poses: dict[int, np.ndarray] = {}
 
@@ -229,16 +232,7 @@ class Rtabmap:
                 stats.loop_closure_type = ""
         watch.lap("optimization")
         stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
-        # Transfer (Alg. 4) when pTime > T_time.
-        threshold = self.params.memory.time_threshold_ms
-        if threshold > 0 and stats.process_time_ms > threshold:
-            protected = self.memory.time_neighbours(hypothesis.location_id) if hypothesis.location_id else set()
-            # Loop closures held for a merge need both ends in WM to be confirmed.
-            protected |= {n for held in self._merge_candidates for n in (held.from_id, held.to_id)}
-            transferred = self.memory.transfer(protected | self._near_robot(stats.location_id))
-            stats.transferred = len(transferred)
-            self._wm_changed |= bool(transferred)
-            self._forget(transferred, transferred_to_ltm=True)
+        self._manage_memory(stats, hypothesis)
         watch.lap("transfer")
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
@@ -804,6 +798,45 @@ class Rtabmap:
         poses = dict(zip(ids, stacked))
         poses[newest] = root_pose
         return poses
+
+    def _manage_memory(self, stats: Statistics, hypothesis: Hypothesis) -> None:
+        """Transfer WM -> LTM (Alg. 4) when pTime > T_time, and whenever WM is over its cap.
+
+        The paper transfers when a frame takes longer than T_time, as many locations as came in
+        (RTAB-Map's Memory::forget: one more). That bounds WM only if most frames cost in
+        proportion to WM. Here most frames extend the local map by a leaf (constant time) and a
+        few re-solve it (time proportional to WM): those few exceeded T_time, each let out three
+        locations while every other frame added one, and WM grew without bound (10,000 frames:
+        WM 9,971, pTime p99 990 ms at T_time 350 ms). So a frame over T_time also caps WM at the
+        size it would have taken ``time_target_ratio`` x T_time at (halving WM at most), and the
+        cap rises by one location per frame under that time: WM grows back no faster than the
+        robot adds locations, up to where re-solves approach T_time again. ``max_wm_size`` is a
+        fixed cap as well (RTAB-Map's Rtabmap/MemoryThr).
+        """
+        params = self.params.memory
+        wm_size = len(self.memory.wm)
+        threshold = params.time_threshold_ms
+        over = threshold > 0 and stats.process_time_ms > threshold
+        if over:
+            fits = int(wm_size * params.time_target_ratio * threshold / stats.process_time_ms)
+            cap = max(fits, wm_size // 2)
+            self._wm_cap = cap if self._wm_cap is None else min(self._wm_cap, cap)
+        elif self._wm_cap is not None and stats.process_time_ms < params.time_target_ratio * threshold:
+            self._wm_cap += 1
+        caps = [c for c in (self._wm_cap, params.max_wm_size) if c]
+        excess = wm_size - min(caps) if caps else 0
+        if not over and excess <= 0:
+            return
+        # Over T_time: one location more out than came in (this frame's and the retrieved ones).
+        locations = max(excess, 2 + len(self.memory.retrieved_now) if over else 0)
+        protected = self.memory.time_neighbours(hypothesis.location_id) if hypothesis.location_id else set()
+        # Loop closures held for a merge need both ends in WM to be confirmed.
+        protected |= {n for held in self._merge_candidates for n in (held.from_id, held.to_id)}
+        transferred = self.memory.transfer(protected | self._near_robot(stats.location_id), locations,
+                                           balance_words=over)
+        stats.transferred = len(transferred)
+        self._wm_changed |= bool(transferred)
+        self._forget(transferred, transferred_to_ltm=True)
 
     def _near_robot(self, newest: int) -> set[int]:
         """SLAM mode: the WM nodes of the local map nearest the newest node, within

@@ -91,3 +91,23 @@ def test_one_bag_holding_two_sessions_back_to_back_maps_into_one_map(tmp_path):
                             capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr
     check_export(tmp_path / "export", truth)
+
+
+@pytest.mark.slow
+def test_sessions_merge_with_working_memory_capped(tmp_path):
+    """Memory management that acts in SLAM mode (issue 14 item 3): with WM capped at 15 locations
+    (Rtabmap/MemoryThr; STM 5), session 1 goes to LTM while it is mapped, comes back when session
+    2 revisits it, and the sessions still merge into one map within the same tolerance."""
+    frames, truth = played(back_to_back=False)
+    params = Params().with_overrides(["Rtabmap/MemoryThr=15", "Mem/STMSize=5"])
+    with Rtabmap(params, tmp_path / "map.db") as rtabmap:
+        stats = [rtabmap.process(frame) for frame in frames]
+    # Over the cap only what transfer never takes: the highest hypothesis' neighbourhood (Alg. 4)
+    # and the locations retrieved this frame. (Uncapped, WM ends with every location but STM's.)
+    protected = 2 * params.bayes.neighborhood + 1 + params.memory.max_retrieved
+    assert max(s.wm_size for s in stats) <= 15 + protected < len(frames) - params.memory.stm_size
+    assert stats[-1].ltm_size >= len(frames) - 15 - protected - params.memory.stm_size
+    assert sum(s.retrieved for s in stats if s.map_id == 1) > 0
+    assert sum(s.loop_closure_type == "loop_inter" for s in stats) >= 2
+    export_global_map(tmp_path / "map.db", tmp_path / "export", Params())
+    check_export(tmp_path / "export", truth)

@@ -120,7 +120,7 @@ def _transfer_frames(rtabmap: Rtabmap, frames: int) -> None:
     """``frames`` frames over T_time (no new word, nothing retrieved)."""
     for _ in range(frames):
         rtabmap.memory.words_added = 0
-        rtabmap.memory.transfer(rtabmap._near_robot(40))
+        rtabmap.memory.transfer(rtabmap._near_robot(40), locations=2, balance_words=True)
         rtabmap.memory.commit()
 
 

@@ -91,7 +91,7 @@ def test_transfer_moves_the_oldest_lowest_weighted_until_enough_words_left(tmp_p
     memory = filled(tmp_path, descriptors, {1: 3, 2: 0, 3: 0, 4: 5, 5: 0, 6: 1})
     words_before = len(memory.vocabulary)
     memory.words_added = 2 * WORDS + 1  # needs three locations' words to leave the vocabulary
-    moved = memory.transfer(protected={3})
+    moved = memory.transfer(protected={3}, locations=2, balance_words=True)
     assert moved == [2, 5, 6]
     assert len(memory.vocabulary) == words_before - 3 * WORDS
     assert set(memory.wm) == {1, 3, 4} and memory.stm == [7, 8]
@@ -101,11 +101,17 @@ def test_transfer_moves_the_oldest_lowest_weighted_until_enough_words_left(tmp_p
     assert memory.ltm_size == 3
 
 
-def test_transfer_moves_one_location_more_than_entered_wm(tmp_path, descriptors):
-    """As RTAB-Map's Memory::forget: WM shrinks by one per frame over T_time (lowest weight first)."""
+def test_transfer_moves_at_least_the_locations_asked_lowest_weight_first(tmp_path, descriptors):
     memory = filled(tmp_path, descriptors, {1: 1, 2: 0, 3: 2})
     memory.words_added = 0
-    assert memory.transfer(protected=set()) == [2, 1]
+    assert memory.transfer(protected=set(), locations=2, balance_words=True) == [2, 1]
+
+
+def test_transfer_without_word_balance_stops_at_the_locations_asked(tmp_path, descriptors):
+    """A WM over its cap (not over T_time) lets out exactly the excess, whatever words came in."""
+    memory = filled(tmp_path, descriptors, {1: 1, 2: 0, 3: 2})
+    memory.words_added = 10 * WORDS
+    assert memory.transfer(protected=set(), locations=1, balance_words=False) == [2]
 
 
 def test_recent_part_of_wm_is_protected(tmp_path, descriptors):
@@ -114,7 +120,7 @@ def test_recent_part_of_wm_is_protected(tmp_path, descriptors):
     memory.last_loop_closure_id = 2
     memory.signatures[4].weight = 1
     memory.words_added = 10 * WORDS
-    moved = memory.transfer(protected=set())
+    moved = memory.transfer(protected=set(), locations=2, balance_words=True)
     # T_recent: half of WM (2 locations) after the last loop closure (3, 4) stays.
     assert moved == [1, 2]
 
@@ -123,7 +129,7 @@ def test_retrieval_brings_back_time_neighbours_first_with_their_words(tmp_path, 
     memory = filled(tmp_path, descriptors, {1: 3, 2: 0, 3: 0, 4: 5, 5: 0, 6: 1})
     memory.add_link(Link(4, 1, LinkType.LOOP_INTRA))  # a space neighbour of 4 (1 hop)
     memory.words_added = 4 * WORDS
-    moved = memory.transfer(protected={4})
+    moved = memory.transfer(protected={4}, locations=2, balance_words=True)
     assert moved == [2, 3, 5, 6]
     memory.commit()
     memory.join()
@@ -141,7 +147,7 @@ def test_retrieval_brings_back_time_neighbours_first_with_their_words(tmp_path, 
     # Retrieved locations are not transferred again in the same frame.
     memory.retrieved_now = [3, 5]
     memory.words_added = 100 * WORDS
-    assert not {3, 5} & set(memory.transfer(protected=set()))
+    assert not {3, 5} & set(memory.transfer(protected=set(), locations=4, balance_words=True))
 
 
 def test_bad_signature_threshold_follows_the_average(tmp_path):
