@@ -255,7 +255,9 @@ def single(folder: Path, n: int, t_time_s: float, overrides: tuple[str, ...] = (
     command = [sys.executable, __file__, "--n", str(n), "--data", str(folder.parent),
                "--seeds", folder.name.rsplit("_", 1)[1], "--single", str(t_time_s)]
     command += [f"--set={o}" for o in overrides] + (["--cached-features"] if cached else [])
-    out = subprocess.run(command, capture_output=True, text=True, check=False)
+    # The package of this tree, not whichever one is installed (a worktree measures its own code).
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))))
+    out = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
     if out.returncode != 0:
         raise RuntimeError(f"{' '.join(command)} failed:\n{out.stderr[-3000:]}")
     result = json.loads(out.stdout.strip().splitlines()[-1])
