@@ -232,7 +232,7 @@ class Rtabmap:
                 stats.loop_closure_type = ""
         watch.lap("optimization")
         stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
-        self._manage_memory(stats, hypothesis)
+        self._manage_memory(stats, hypothesis, slam=frame.T_odom_base is not None)
         watch.lap("transfer")
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
@@ -799,7 +799,7 @@ class Rtabmap:
         poses[newest] = root_pose
         return poses
 
-    def _manage_memory(self, stats: Statistics, hypothesis: Hypothesis) -> None:
+    def _manage_memory(self, stats: Statistics, hypothesis: Hypothesis, slam: bool) -> None:
         """Transfer WM -> LTM (Alg. 4) when pTime > T_time, and whenever WM is over its cap.
 
         The paper transfers when a frame takes longer than T_time, as many locations as came in
@@ -812,12 +812,18 @@ class Rtabmap:
         cap rises by one location per frame under that time: WM grows back no faster than the
         robot adds locations, up to where re-solves approach T_time again. ``max_wm_size`` is a
         fixed cap as well (RTAB-Map's Rtabmap/MemoryThr).
+
+        The learnt cap is for SLAM mode (``slam``: the frame has odometry). Without a local map
+        (appearance only, ``detect``) pTime is quantisation and the Bayes step, and a frame over
+        T_time is a spike, not a WM too large: capping there halved WM at each spike and the
+        revisited places left it (3,000 images, T_time 0.05 s: 14 frames over, WM 1,362, recall
+        29 % instead of 88 %, bench/bench_detect.py); the paper's transfer alone applies.
         """
         params = self.params.memory
         wm_size = len(self.memory.wm)
         threshold = params.time_threshold_ms
         over = threshold > 0 and stats.process_time_ms > threshold
-        if over:
+        if over and slam:
             fits = int(wm_size * params.time_target_ratio * threshold / stats.process_time_ms)
             cap = max(fits, wm_size // 2)
             self._wm_cap = cap if self._wm_cap is None else min(self._wm_cap, cap)
