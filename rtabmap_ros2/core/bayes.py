@@ -90,6 +90,13 @@ class TransitionModel:
                 for other in self._graph.neighbors(node):
                     self._cache.pop(other, None)
 
+    def forget(self, node_ids) -> None:
+        """Drop the cached neighbourhoods of nodes that left WM: in a graph made small-world by
+        loop closures one holds thousands of ids, and LTM's nodes kept theirs, the largest part of
+        RSS's growth on a 10,000-frame run whose WM had stopped growing."""
+        for node in node_ids:
+            self._cache.pop(node, None)
+
     def neighbourhood(self, node_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(ids, unnormalised Gaussian weights) of the nodes whose transition weight is not negligible."""
         cached = self._cache.get(node_id)

@@ -117,6 +117,10 @@ class Graph:
         """Links of a node, oriented from it."""
         return [link.oriented_from(node_id) for link in self._adjacency.get(node_id, {}).values()]
 
+    def stored_links_of(self, node_id: int) -> list[Link]:
+        """Links of a node as stored (either orientation): the objects ``links_within`` returns."""
+        return list(self._adjacency.get(node_id, {}).values())
+
     def link(self, a: int, b: int) -> Link | None:
         link = self._adjacency.get(a, {}).get(b)
         return None if link is None else link.oriented_from(a)

@@ -152,6 +152,17 @@ def _cached(kind: str, array, planar: bool, make):
     return value
 
 
+def release(links) -> None:
+    """Drop the cached gtsam objects of links that will not be optimised soon (their nodes left
+    WM); they are made again if the links come back."""
+    for link in links:
+        for kind, source in (("factor", link), ("robust factor", link), ("noise", link.information),
+                             ("pose", link.T_from_to)):
+            hit = _GTSAM_CACHE.get((kind, id(source)))
+            if hit is not None and hit[0]() is source:
+                del _GTSAM_CACHE[(kind, id(source))]
+
+
 def _cached_noise(link: Link, planar: bool):
     """The link's noise model (OptimizationError naming the link when its information is unusable)."""
     return _cached("noise", link.information, planar, lambda information, p: _noise(information, p, link))

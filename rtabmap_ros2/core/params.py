@@ -146,9 +146,11 @@ class MemoryParams:
         0, "Most locations in WM: over it, the lowest-weighted go to LTM every frame (0 = no limit; "
         "RTAB-Map's Rtabmap/MemoryThr)", "locations")
     time_target_ratio: float = _p(
-        0.8, "After a frame over T_time, WM is capped at the size that frame would have taken this part "
-        "of T_time at (its time taken as proportional to WM); the cap rises by one location a frame "
-        "that takes less, so WM grows back only as fast as the robot adds locations", "ratio")
+        0.8, "SLAM mode: after a frame over T_time, WM is capped at the size it would have taken this part of "
+        "T_time at (core/wm_budget.py)", "ratio")
+    wm_cap_growth: float = _p(
+        0.1, "SLAM mode: how much that cap rises per frame faster than time_target_ratio x T_time "
+        "(core/wm_budget.py)", "locations/frame")
     keep_one_node_per_session: bool = _p(
         True, "Never transfer the last WM node of a session, so no map is orphaned (2014 §IV)"
     )
@@ -173,6 +175,7 @@ class MemoryParams:
         _check(self.max_retrieved >= 0, "memory.max_retrieved", self.max_retrieved, ">= 0")
         _check(self.max_wm_size >= 0, "memory.max_wm_size", self.max_wm_size, ">= 0")
         _check(0.0 < self.time_target_ratio <= 1.0, "memory.time_target_ratio", self.time_target_ratio, "in (0, 1]")
+        _check(self.wm_cap_growth >= 0.0, "memory.wm_cap_growth", self.wm_cap_growth, ">= 0")
         _check(0.0 <= self.local_immunization_ratio <= 1.0, "memory.local_immunization_ratio",
                self.local_immunization_ratio, "in [0, 1]")
         _check(self.local_radius >= 0.0, "memory.local_radius", self.local_radius, ">= 0")

@@ -34,7 +34,8 @@ from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
 from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, chain_poses, consensus_guess, default_information,
                                      loop_type)
 from rtabmap_ros2.core.memory import Memory
-from rtabmap_ros2.core.optimizer import load_backend, optimize
+from rtabmap_ros2.core.optimizer import load_backend, optimize, release
+from rtabmap_ros2.core.wm_budget import WorkingMemoryBudget
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.registration import (assemble_scan_map, epipolar_inliers, refine_neighbor_link, register,
                                             words_3d)
@@ -171,8 +172,7 @@ class Rtabmap:
         # and whether WM changed since (transfer, retrieval): see _leaf_update.
         self._solved_version: Optional[int] = None
         self._wm_changed = True
-        # WM size cap learnt from frames over T_time (see _manage_memory); None until one is.
-        self._wm_cap: Optional[int] = None
+        self._wm_budget = WorkingMemoryBudget(self.params.memory)
         self._grid: Optional[GridAccumulator] = None
         self._grid_poses: dict[int, np.ndarray] = {}
 
@@ -399,6 +399,10 @@ class Rtabmap:
             if not transferred_to_ltm:
                 self._map_poses.pop(node, None)
             self._merged_map_guess.pop(node, None)
+        if transferred_to_ltm:
+            # Their caches: Bayes neighbourhoods and gtsam factors (RSS flat once WM is bounded).
+            self.bayes.transitions.forget(nodes)
+            release(link for node in nodes for link in self.memory.graph.stored_links_of(node))
         gone = set(nodes)
         self._local_links = [link for link in self._local_links if not {link.from_id, link.to_id} & gone]
 
@@ -800,37 +804,15 @@ class Rtabmap:
         return poses
 
     def _manage_memory(self, stats: Statistics, hypothesis: Hypothesis, slam: bool) -> None:
-        """Transfer WM -> LTM (Alg. 4) when pTime > T_time, and whenever WM is over its cap.
-
-        The paper transfers when a frame takes longer than T_time, as many locations as came in
-        (RTAB-Map's Memory::forget: one more). That bounds WM only if most frames cost in
-        proportion to WM. Here most frames extend the local map by a leaf (constant time) and a
-        few re-solve it (time proportional to WM): those few exceeded T_time, each let out three
-        locations while every other frame added one, and WM grew without bound (10,000 frames:
-        WM 9,971, pTime p99 990 ms at T_time 350 ms). So a frame over T_time also caps WM at the
-        size it would have taken ``time_target_ratio`` x T_time at (halving WM at most), and the
-        cap rises by one location per frame under that time: WM grows back no faster than the
-        robot adds locations, up to where re-solves approach T_time again. ``max_wm_size`` is a
-        fixed cap as well (RTAB-Map's Rtabmap/MemoryThr).
-
-        The learnt cap is for SLAM mode (``slam``: the frame has odometry). Without a local map
-        (appearance only, ``detect``) pTime is quantisation and the Bayes step, and a frame over
-        T_time is a spike, not a WM too large: capping there halved WM at each spike and the
-        revisited places left it (3,000 images, T_time 0.05 s: 14 frames over, WM 1,362, recall
-        29 % instead of 88 %, bench/bench_detect.py); the paper's transfer alone applies.
-        """
-        params = self.params.memory
+        """Transfer WM -> LTM (Alg. 4) when pTime > T_time, and whenever WM is over the cap of
+        :class:`WorkingMemoryBudget` (why the paper's rule alone does not bound WM here: there)."""
         wm_size = len(self.memory.wm)
-        threshold = params.time_threshold_ms
+        threshold = self.params.memory.time_threshold_ms
         over = threshold > 0 and stats.process_time_ms > threshold
-        if over and slam:
-            fits = int(wm_size * params.time_target_ratio * threshold / stats.process_time_ms)
-            cap = max(fits, wm_size // 2)
-            self._wm_cap = cap if self._wm_cap is None else min(self._wm_cap, cap)
-        elif self._wm_cap is not None and stats.process_time_ms < params.time_target_ratio * threshold:
-            self._wm_cap += 1
-        caps = [c for c in (self._wm_cap, params.max_wm_size) if c]
-        excess = wm_size - min(caps) if caps else 0
+        if slam:
+            self._wm_budget.observe(stats.process_time_ms, wm_size)
+        cap = self._wm_budget.cap()
+        excess = wm_size - cap if cap is not None else 0
         if not over and excess <= 0:
             return
         # Over T_time: one location more out than came in (this frame's and the retrieved ones).

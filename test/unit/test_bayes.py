@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rtabmap_ros2.core.bayes import NEW_LOCATION, BayesFilter, likelihood
+from rtabmap_ros2.core.bayes import NEW_LOCATION, BayesFilter, TransitionModel, likelihood
 from rtabmap_ros2.core.graph import Graph, Link, LinkType
 from rtabmap_ros2.core.params import BayesParams
 
@@ -146,3 +146,12 @@ def test_prediction_spreads_the_peak_and_pools_the_uniform_floor():
     np.testing.assert_allclose(around[30:], base)
     ratio = (around[19] - base) / (around[20] - base)
     assert ratio == pytest.approx(math.exp(0.5 / 1.6 ** 2), rel=1e-6)
+
+
+def test_forgotten_nodes_lose_their_cached_neighbourhood():
+    graph = Graph([Link(i, i + 1, LinkType.NEIGHBOR) for i in range(1, 20)])
+    model = TransitionModel(BayesParams(), graph)
+    for node in (3, 4, 5):
+        model.neighbourhood(node)
+    model.forget([3, 4])
+    assert set(model._cache) == {5}

@@ -7,7 +7,7 @@ import pytest
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Link, LinkType, chain_poses, default_information
-from rtabmap_ros2.core.optimizer import gtsam_information, optimize, read_g2o, write_g2o
+from rtabmap_ros2.core.optimizer import gtsam_information, optimize, read_g2o, release, write_g2o
 from rtabmap_ros2.core.params import GraphParams
 from rtabmap_ros2.errors import OptimizationError
 
@@ -195,3 +195,20 @@ def test_robust_keeps_a_loop_closure_whose_removal_would_disconnect_the_graph():
     result = optimize(poses, links, 20, GraphParams(robust=True), planar=True)
     assert len(result.rejected) == 1
     assert set(result.poses) == set(range(1, 21))
+
+
+def test_released_links_lose_their_cached_gtsam_objects():
+    from rtabmap_ros2.core import optimizer as optimizer_module
+
+    poses = {i: transforms.from_xy_yaw(i * 1.0, 0.0, 0.0) for i in range(3)}
+    info = np.eye(6) * 100.0
+    links = [Link(0, 1, LinkType.NEIGHBOR, transforms.from_xy_yaw(1.0, 0.0, 0.0), info.copy()),
+             Link(1, 2, LinkType.NEIGHBOR, transforms.from_xy_yaw(1.0, 0.0, 0.0), info.copy()),
+             Link(2, 0, LinkType.LOOP_INTRA, transforms.from_xy_yaw(-2.0, 0.0, 0.0), info.copy())]
+    before = len(optimizer_module._GTSAM_CACHE)
+    optimize(poses, links, 2, GraphParams(), planar=True)
+    assert len(optimizer_module._GTSAM_CACHE) >= before + 3 * 3  # factor, noise, pose (+ robust)
+    release(links)
+    assert len(optimizer_module._GTSAM_CACHE) == before
+    result = optimize(poses, links, 2, GraphParams(), planar=True)  # made again when needed
+    assert np.allclose(result.poses[0][:3, 3], [0.0, 0.0, 0.0], atol=1e-6)

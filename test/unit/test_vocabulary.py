@@ -380,3 +380,26 @@ def test_float_l2_nndr_uses_distances_not_squares():
     words[0, 0], words[1, 0] = 1.0, -1.2
     vocab.add_words([1, 2], words)
     assert vocab.match(np.zeros((1, 4), np.float32)).tolist() == [1]
+
+
+def test_finished_build_takes_changes_as_they_come_before_its_swap(rng, gated_build):
+    """Once the build thread has finished, every call replays the changes logged so far, so the
+    swap frame does not replay all of them at once; the swapped-in index is the same."""
+    n_words = 5000
+    centres = random_binary(rng, n_words)
+    ids = np.arange(1, n_words + 1)
+    params = VocabularyParams(index="auto", ivf_min_words=4000, ivf_swap_frames=50)
+    sync = Vocabulary(params, binary=True, background_training=False)
+    background = Vocabulary(params, binary=True)
+    for vocab in (sync, background):
+        vocab.add_words(ids[:4000], centres[:4000])
+    gated_build.set()
+    background._build.done.wait(30)
+    for vocab in (sync, background):
+        changes_during_training(vocab, centres, ids)
+    build = background._build
+    assert background.training and build.replayed >= 3 and len(build.log) <= 1
+    background.join_training()
+    queries = np.concatenate([flip_bits(rng, centres, 20), random_binary(rng, 500)])
+    np.testing.assert_array_equal(background.match(queries), sync.match(queries))
+    assert background._ivf.ntotal == len(background) == len(sync)
