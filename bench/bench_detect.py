@@ -24,8 +24,10 @@ Issue 12 modes (T_time 0.7 s, one sequence per seed of ``--seeds``, default 7 11
   per seed and averaged (-> ``results/detect_ablation.json``). Features are extracted once per
   image and cached beside the sequence (``features.npz``): pTime excludes them anyway.
 * ``--reference``: the reference implementation (RTAB-Map 0.22.1 C++, ``../shared/reference``,
-  when it is there) on the same images, side by side with our defaults: precision, recall, recall
-  at 100 % precision, median and max time per image (-> ``results/detect_reference.json``).
+  when it is there) on the same images, side by side with our defaults (the ablation's run of them
+  when it is kept beside the images): precision, recall, recall at 100 % precision, median and max
+  time per image (-> ``results/detect_reference.json``). The reference's time per image is its whole
+  iteration, feature extraction included; ours is pTime, without it.
 """
 
 from __future__ import annotations
