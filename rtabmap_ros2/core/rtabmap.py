@@ -60,6 +60,8 @@ POSE_EPSILON_M = 1e-3
 POSE_EPSILON_RAD = 1e-3
 # Verified loop closures held while waiting for a second one to merge two maps (newest kept).
 MAX_MERGE_CANDIDATES = 50
+# Steps whose time grows with WM (vocabulary, Bayes filter, local map): see WorkingMemoryBudget.
+SCALING_STEPS = ("quantization", "bayes", "optimization")
 TIMING_KEYS = ("features", "quantization", "rehearsal", "bayes", "verification", "retrieval",
                "optimization", "transfer", "database")
 
@@ -232,7 +234,7 @@ class Rtabmap:
                 stats.loop_closure_type = ""
         watch.lap("optimization")
         stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
-        self._manage_memory(stats, hypothesis, slam=frame.T_odom_base is not None)
+        self._manage_memory(stats, hypothesis, watch.ms, slam=frame.T_odom_base is not None)
         watch.lap("transfer")
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
@@ -803,14 +805,15 @@ class Rtabmap:
         poses[newest] = root_pose
         return poses
 
-    def _manage_memory(self, stats: Statistics, hypothesis: Hypothesis, slam: bool) -> None:
+    def _manage_memory(self, stats: Statistics, hypothesis: Hypothesis, timings: dict[str, float],
+                       slam: bool) -> None:
         """Transfer WM -> LTM (Alg. 4) when pTime > T_time, and whenever WM is over the cap of
         :class:`WorkingMemoryBudget` (why the paper's rule alone does not bound WM here: there)."""
         wm_size = len(self.memory.wm)
         threshold = self.params.memory.time_threshold_ms
         over = threshold > 0 and stats.process_time_ms > threshold
         if slam:
-            self._wm_budget.observe(stats.process_time_ms, wm_size)
+            self._wm_budget.observe(stats.process_time_ms, sum(timings[k] for k in SCALING_STEPS), wm_size)
         cap = self._wm_budget.cap()
         excess = wm_size - cap if cap is not None else 0
         if not over and excess <= 0:
