@@ -813,7 +813,9 @@ class Rtabmap:
         threshold = self.params.memory.time_threshold_ms
         over = threshold > 0 and stats.process_time_ms > threshold
         if slam:
-            self._wm_budget.observe(stats.process_time_ms, sum(timings[k] for k in SCALING_STEPS), wm_size)
+            # A frame that stopped before a step (a bad signature has no Bayes step) spent nothing in it.
+            self._wm_budget.observe(stats.process_time_ms, sum(timings.get(k, 0.0) for k in SCALING_STEPS),
+                                    wm_size)
         cap = self._wm_budget.cap()
         excess = wm_size - cap if cap is not None else 0
         if not over and excess <= 0:
