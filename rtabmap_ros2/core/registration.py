@@ -159,6 +159,42 @@ def kabsch(from_points: np.ndarray, to_points: np.ndarray, weights: np.ndarray |
     return T[0] if single else T
 
 
+def word_pairs(from_sig: Signature, to_sig: Signature) -> tuple[np.ndarray, np.ndarray]:
+    """Feature indices of the words occurring exactly once in both signatures (RTAB-Map's
+    findPairsUnique): ``(i_from, i_to)``, each (K,) int64, in word id order."""
+    from_words = from_sig.unique_words()
+    to_words = to_sig.unique_words()
+    common = sorted(from_words.keys() & to_words.keys())
+    i_from = np.fromiter((from_words[w] for w in common), dtype=np.int64, count=len(common))
+    i_to = np.fromiter((to_words[w] for w in common), dtype=np.int64, count=len(common))
+    return i_from, i_to
+
+
+def epipolar_inliers(from_sig: Signature, to_sig: Signature, min_pairs: int, max_distance_px: float,
+                     confidence: float) -> int:
+    """Inliers of a fundamental matrix fitted by RANSAC to the two images' word pairs (RTAB-Map's
+    EpipolarGeometry::check, hypothesis verification VhEp): 0 when fewer than ``min_pairs`` pairs.
+
+    Args:
+        from_sig, to_sig: signatures with 2D keypoints (px) per word.
+        min_pairs: pairs needed before fitting (at least 8, the 8-point algorithm's).
+        max_distance_px: largest distance of an inlier from its epipolar line.
+        confidence: RANSAC's confidence.
+    """
+    import cv2
+
+    i_from, i_to = word_pairs(from_sig, to_sig)
+    if len(i_from) < max(min_pairs, 8):
+        return 0
+    p_from = np.asarray(from_sig.keypoints, dtype=np.float64)[i_from, :2]
+    p_to = np.asarray(to_sig.keypoints, dtype=np.float64)[i_to, :2]
+    # OpenCV's FM_RANSAC seeds its own generator on every call: the same pairs, the same decision.
+    F, mask = cv2.findFundamentalMat(p_from, p_to, cv2.FM_RANSAC, max_distance_px, confidence)
+    if F is None or mask is None:
+        return 0
+    return int(mask.sum())
+
+
 def correspondences(from_sig: Signature, to_sig: Signature) -> tuple[np.ndarray, np.ndarray]:
     """3D-3D correspondences of the words occurring exactly once in both signatures.
 
@@ -166,13 +202,9 @@ def correspondences(from_sig: Signature, to_sig: Signature) -> tuple[np.ndarray,
         ``(from_points, to_points)``, each (K,3) float64 (m) in its node's base frame, only
         pairs with finite positions in both.
     """
-    from_words = from_sig.unique_words()
-    to_words = to_sig.unique_words()
-    common = sorted(from_words.keys() & to_words.keys())
-    if not common:
+    i_from, i_to = word_pairs(from_sig, to_sig)
+    if not len(i_from):
         return np.zeros((0, 3)), np.zeros((0, 3))
-    i_from = np.fromiter((from_words[w] for w in common), dtype=np.int64, count=len(common))
-    i_to = np.fromiter((to_words[w] for w in common), dtype=np.int64, count=len(common))
     p_from = np.asarray(from_sig.points3d, dtype=np.float64)[i_from]
     p_to = np.asarray(to_sig.points3d, dtype=np.float64)[i_to]
     finite = np.isfinite(p_from).all(axis=1) & np.isfinite(p_to).all(axis=1)

@@ -37,7 +37,8 @@ from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import load_backend, optimize, release
 from rtabmap_ros2.core.wm_budget import WorkingMemoryBudget
 from rtabmap_ros2.core.params import Params
-from rtabmap_ros2.core.registration import assemble_scan_map, refine_neighbor_link, register, words_3d
+from rtabmap_ros2.core.registration import (assemble_scan_map, epipolar_inliers, refine_neighbor_link, register,
+                                            words_3d)
 from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.sync import NS_PER_S
@@ -465,7 +466,7 @@ class Rtabmap:
         stats.highest_hypothesis_id = hypothesis.location_id
         stats.highest_hypothesis_value = hypothesis.probability
         watch.lap("bayes")
-        if self.bayes.accepted(hypothesis, self._previous_hypothesis_value):
+        if self._accepted(sig, hypothesis, stats):
             old = memory.signatures[hypothesis.location_id]
             try:
                 link = self._verify(sig, old)
@@ -489,6 +490,28 @@ class Rtabmap:
         scores = self.memory.similarities(sig, candidates)
         self.bayes.update(candidates, likelihood(scores))
         return self.bayes.highest()
+
+    def _accepted(self, sig: Signature, hypothesis: Hypothesis, stats: Statistics) -> bool:
+        """Hypothesis selection (§III-D) and RTAB-Map's validation of the selected hypothesis
+        (Rtabmap.cpp, in this order: T_loop and more than one hypothesis, epipolar geometry
+        when VhEp/Enabled, Rtabmap/LoopRatio). A hypothesis the epipolar check rejects is
+        recorded in ``stats.rejected_loop_closure_id``."""
+        if not self.bayes.accepted(hypothesis, self._previous_hypothesis_value):
+            return False
+        p = self.params.bayes
+        if not p.epipolar_verification:
+            return True
+        # EpipolarGeometry::check: the words found once in both images must fit a fundamental
+        # matrix with VhEp/MatchCountMin RANSAC inliers. The Bayes filter's belief outlives the
+        # view that raised it (a revisit that ends keeps its place's value for frames); the
+        # current image must show the place.
+        old = self.memory.signatures[hypothesis.location_id]
+        inliers = epipolar_inliers(sig, old, p.epipolar_min_matches, p.epipolar_max_distance, p.epipolar_confidence)
+        if inliers >= p.epipolar_min_matches:
+            return True
+        stats.rejected_loop_closure_id = old.id
+        log.debug("hypothesis %d -> %d rejected by epipolar geometry: %d inliers", sig.id, old.id, inliers)
+        return False
 
     def _merge_allows(self, link: Link) -> bool:
         """True when the verified ``link`` is to be added now, False when it is held.
@@ -638,7 +661,7 @@ class Rtabmap:
         stats.highest_hypothesis_id = hypothesis.location_id
         stats.highest_hypothesis_value = hypothesis.probability
         watch.lap("bayes")
-        if self.bayes.accepted(hypothesis, self._previous_hypothesis_value) and frame.T_odom_base is not None:
+        if frame.T_odom_base is not None and self._accepted(sig, hypothesis, stats):
             old = memory.signatures[hypothesis.location_id]
             try:
                 link = self._verify(sig, old)
@@ -790,7 +813,9 @@ class Rtabmap:
         threshold = self.params.memory.time_threshold_ms
         over = threshold > 0 and stats.process_time_ms > threshold
         if slam:
-            self._wm_budget.observe(stats.process_time_ms, sum(timings.get(k, 0.0) for k in SCALING_STEPS), wm_size)
+            # A frame that stopped before a step (a bad signature has no Bayes step) spent nothing in it.
+            self._wm_budget.observe(stats.process_time_ms, sum(timings.get(k, 0.0) for k in SCALING_STEPS),
+                                    wm_size)
         cap = self._wm_budget.cap()
         excess = wm_size - cap if cap is not None else 0
         if not over and excess <= 0:

@@ -20,6 +20,9 @@ def test_defaults_are_the_papers_table_i():
     assert p.vocabulary.nndr == pytest.approx(0.8)
     assert p.features.max_features == 400
     assert p.bayes.sigma == pytest.approx(1.6) and p.bayes.neighborhood == 16
+    # Hypothesis validation as RTAB-Map's defaults, plus its epipolar check (issue 12's ablation).
+    assert p.bayes.loop_ratio == 0.0 and p.bayes.epipolar_verification
+    assert p.bayes.epipolar_min_matches == 8
 
 
 @pytest.mark.parametrize("alias, value, section, field, expected", [
@@ -29,6 +32,10 @@ def test_defaults_are_the_papers_table_i():
     ("Kp/TfIdfLikelihoodUsed", "true", "bayes", "likelihood", "tf_idf"),
     ("Kp/NewWordsComparedTogether", "false", "vocabulary", "new_words_compared_together", False),
     ("Rtabmap/LoopRatio", "0.5", "bayes", "loop_ratio", 0.5),
+    ("VhEp/Enabled", "false", "bayes", "epipolar_verification", False),
+    ("VhEp/MatchCountMin", "12", "bayes", "epipolar_min_matches", 12),
+    ("VhEp/RansacParam1", "2", "bayes", "epipolar_max_distance", 2.0),
+    ("VhEp/RansacParam2", "0.95", "bayes", "epipolar_confidence", 0.95),
     ("Bayes/VirtualPlacePriorThr", "0.8", "bayes", "virtual_place_prior", 0.8),
     ("Mem/RehearsalWeightIgnoredWhileMoving", "true", "memory", "rehearsal_weight_ignored_while_moving", True),
     ("Mem/RehearsalMaxDistance", "0.1", "memory", "rehearsal_max_distance", 0.1),
@@ -58,7 +65,7 @@ def test_set_overrides_accept_dotted_and_rtabmap_names_in_order():
 
 @pytest.mark.parametrize("assignment", ["memory.stm_size", "nosuch.key=1", "memory.nosuch=1", "Mem/Nosuch=2",
                                         "memory.stm_size=0", "memory.stm_size=abc", "memory.stm_size=2.5",
-                                        "bayes.loop_threshold=1.5", "vocabulary.nndr=0",
+                                        "bayes.loop_threshold=1.5", "vocabulary.nndr=0", "VhEp/MatchCountMin=7",
                                         "features.detector=surf", "memory.keep_one_node_per_session=maybe"])
 def test_bad_set_assignments_raise_parameter_error(assignment):
     with pytest.raises(ParameterError):

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.params import RegistrationParams
-from rtabmap_ros2.core.registration import icp_2d, register, words_3d
+from rtabmap_ros2.core.registration import epipolar_inliers, icp_2d, register, words_3d
 from rtabmap_ros2.core.sensor import CameraModel
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.errors import RegistrationError
@@ -170,3 +170,24 @@ def test_icp_refinement_and_rejection(intel, rng):
         register(sa, sc, params)
     # Without icp_refine the same pair is accepted on the visual estimate alone.
     assert not register(sa, sc, RegistrationParams(planar=True, icp_refine=False)).icp_refined
+
+
+def test_epipolar_inliers_accept_a_consistent_view_and_reject_a_chance_overlap():
+    """RTAB-Map's VhEp check: pairs of words found once in both images must fit a fundamental matrix."""
+    rng = np.random.default_rng(4)
+    points = rng.uniform((0, 0), (640, 480), (120, 2)).astype(np.float32)
+    # The same wall seen again, turned by 2 degrees, 3 % closer, shifted: every pair fits.
+    H = cv2.getRotationMatrix2D((320, 240), 2.0, 1.03)
+    moved = (points @ H[:, :2].T + H[:, 2] + (40, -15) + rng.normal(0, 0.5, points.shape)).astype(np.float32)
+    ids = np.arange(1, 121, dtype=np.int64)
+    a = Signature(1, 1, 0, ids, points)
+    b = Signature(2, 1, 0, ids, moved)
+    assert epipolar_inliers(a, b, 8, 3.0, 0.99) >= 110
+    assert epipolar_inliers(a, b, 8, 3.0, 0.99) == epipolar_inliers(a, b, 8, 3.0, 0.99)  # deterministic
+    # Ten words shared by chance, anywhere in the other image: a fundamental matrix fits 7 of any 10.
+    chance = Signature(3, 1, 0, np.r_[ids[:10], ids[10:] + 1000], rng.uniform((0, 0), (640, 480), (120, 2)))
+    assert epipolar_inliers(a, chance, 8, 3.0, 0.99) < 8
+    # Fewer pairs than needed: 0 without fitting. A word seen twice in an image makes no pair.
+    assert epipolar_inliers(a, Signature(4, 1, 0, np.r_[ids[:7], ids[7:] + 1000], moved), 8, 3.0, 0.99) == 0
+    twice = np.r_[ids[:60], ids[:60]]
+    assert epipolar_inliers(a, Signature(5, 1, 0, twice, moved), 8, 3.0, 0.99) == 0

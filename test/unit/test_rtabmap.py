@@ -64,6 +64,21 @@ def test_a_revisited_place_is_found(revisit_run):
 
 
 @pytest.mark.slow
+def test_epipolar_verification_rejects_what_the_image_does_not_show(revisit_run, tmp_path):
+    """VhEp: a hypothesis is accepted only when the word pairs of the two images fit a fundamental
+    matrix. Asking for more pairs than an image has words rejects every hypothesis, each recorded
+    as rejected; with RTAB-Map's 8 the revisit's loop closures are found (revisit_run)."""
+    sequence, found, _ = revisit_run
+    assert sum(1 for s in found if s.loop_closure_id) >= 10
+    params = Params().with_overrides(["VhEp/MatchCountMin=1000"])
+    with Rtabmap(params, tmp_path / "m.db") as rtabmap:
+        stats = run(rtabmap, sequence, len(sequence))
+    assert [s.loop_closure_id for s in stats if s.loop_closure_id] == []
+    over = [s for s in stats if s.highest_hypothesis_value >= params.bayes.loop_threshold and s.highest_hypothesis_id]
+    assert over and all(s.rejected_loop_closure_id == s.highest_hypothesis_id for s in over)
+
+
+@pytest.mark.slow
 def test_stm_size_respected_and_wm_grows_without_transfer(revisit_run):
     _, stats, _ = revisit_run
     assert max(s.stm_size for s in stats) == Params().memory.stm_size
