@@ -92,8 +92,8 @@ class TransitionModel:
 
     def forget(self, node_ids) -> None:
         """Drop the cached neighbourhoods of nodes that left WM: in a graph made small-world by
-        loop closures one holds thousands of ids, and LTM's nodes kept theirs, the largest part of
-        RSS's growth on a 10,000-frame run whose WM had stopped growing."""
+        loop closures one holds thousands of ids, and without this every node ever in WM kept
+        its own."""
         for node in node_ids:
             self._cache.pop(node, None)
 

@@ -14,9 +14,8 @@ All database writes of a frame go in one :class:`WriteBatch` committed by the ba
 
 from __future__ import annotations
 
-from collections import deque
-
 import logging
+from collections import deque
 from typing import Callable, Iterable
 
 import numpy as np
@@ -326,9 +325,10 @@ class Memory:
 
     # -- transfer (Alg. 4) ----------------------------------------------------------------------
     def transfer(self, protected: set[int], locations: int, balance_words: bool) -> list[int]:
-        """Move the oldest of the lowest-weighted WM locations to LTM: at least ``locations`` of
-        them and, with ``balance_words``, until as many words left the vocabulary as came in
-        this frame (Alg. 4). Returns the transferred ids."""
+        """Move the lowest-weighted WM locations to LTM (among equal weights, from the session
+        holding most of WM, then the oldest): at least ``locations`` of them and, with
+        ``balance_words``, until as many words left the vocabulary as came in this frame
+        (Alg. 4). Returns the transferred ids."""
         immune = set(protected) | set(self.retrieved_now) | self._recent_immune()
         per_map: dict[int, int] = {}
         for node in self.wm:

@@ -402,7 +402,8 @@ class Rtabmap:
                 self._map_poses.pop(node, None)
             self._merged_map_guess.pop(node, None)
         if transferred_to_ltm:
-            # Their caches: Bayes neighbourhoods and gtsam factors (RSS flat once WM is bounded).
+            # Their caches: Bayes neighbourhoods and gtsam factors (else they grow with every node
+            # ever in WM).
             self.bayes.transitions.forget(nodes)
             release(link for node in nodes for link in self.memory.graph.stored_links_of(node))
         gone = set(nodes)
@@ -810,8 +811,7 @@ class Rtabmap:
         """Transfer WM -> LTM (Alg. 4) when pTime > T_time, and whenever WM is over the cap of
         :class:`WorkingMemoryBudget` (why the paper's rule alone does not bound WM here: there)."""
         wm_size = len(self.memory.wm)
-        threshold = self.params.memory.time_threshold_ms
-        over = threshold > 0 and stats.process_time_ms > threshold
+        over = self._wm_budget.over(stats.process_time_ms)
         if slam:
             # A frame that stopped before a step (a bad signature has no Bayes step) spent nothing in it.
             self._wm_budget.observe(stats.process_time_ms, sum(timings.get(k, 0.0) for k in SCALING_STEPS),

@@ -46,15 +46,19 @@ class WorkingMemoryBudget:
         self.params = params
         self._learnt: Optional[float] = None
 
+    def over(self, process_ms: float) -> bool:
+        """True when a frame took longer than T_time (never without T_time)."""
+        threshold = self.params.time_threshold_ms
+        return threshold > 0 and process_ms > threshold
+
     def observe(self, process_ms: float, scaling_ms: float, wm_size: int) -> None:
         """Account for one processed SLAM frame: ``process_ms`` of which ``scaling_ms`` grow with
         WM, ``wm_size`` locations in WM."""
-        threshold = self.params.time_threshold_ms
-        if threshold <= 0:
+        if self.params.time_threshold_ms <= 0:
             return
-        target_ms = self.params.time_target_ratio * threshold
+        target_ms = self.params.time_target_ratio * self.params.time_threshold_ms
         fixed_ms = process_ms - scaling_ms
-        if process_ms > threshold and fixed_ms < target_ms and scaling_ms > 0:
+        if self.over(process_ms) and fixed_ms < target_ms and scaling_ms > 0:
             fits = max(int(wm_size * (target_ms - fixed_ms) / scaling_ms), wm_size // 2)
             self._learnt = fits if self._learnt is None else min(self._learnt, fits)
         elif self._learnt is not None and process_ms < target_ms:
