@@ -203,8 +203,8 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
     with Rtabmap(params, db, delete_existing=True) as rtabmap:
         retrieve = rtabmap.memory.retrieve
 
-        def counted_retrieve(hypothesis_id: int) -> list[int]:
-            ids = retrieve(hypothesis_id)  # observed, not replaced: which sessions come back
+        def counted_retrieve(ids: list[int]) -> list[int]:
+            ids = retrieve(ids)  # observed, not replaced: which sessions come back
             for n in ids:
                 m = rtabmap.memory.map_ids[n]
                 retrieved_per_session[m] = retrieved_per_session.get(m, 0) + 1

@@ -287,9 +287,25 @@ class Memory:
                       key=lambda n: (all_hops[n], n))
         return ordered + rest
 
-    def retrieve(self, hypothesis_id: int) -> list[int]:
-        """Bring up to ``max_retrieved`` locations around the hypothesis back from LTM to WM."""
-        ids = self.retrieval_candidates(hypothesis_id)[: self.params.memory.max_retrieved]
+    def local_retrieval_candidates(self, nearest: list[int], limit: int) -> list[int]:
+        """SLAM mode: up to ``limit`` LTM locations linked to ``nearest`` (the local map's nodes
+        nearest the robot, nearest first; newest link first), then LTM neighbours of those: the
+        map around the robot comes back when it revisits a place whose locations went to LTM,
+        not only around the highest hypothesis (RTAB-Map's RGBD/MaxLocalRetrieved,
+        Rtabmap::process retrieval 2/3)."""
+        found: list[int] = []
+        for sources in (nearest, found):
+            for node in sources:  # ``found`` grows while its neighbours are looked at
+                for other in sorted(self.graph.neighbors(node), reverse=True):
+                    if len(found) >= limit:
+                        return found
+                    if other not in self.signatures and other not in found:
+                        found.append(other)
+        return found
+
+    def retrieve(self, ids: list[int]) -> list[int]:
+        """Bring the LTM locations ``ids`` back to WM (Alg. 3); returns the ids retrieved."""
+        ids = [n for n in dict.fromkeys(ids) if n not in self.signatures and n in self.graph]
         if not ids:
             return []
         for sig in self.db.load_signatures(ids):

@@ -142,6 +142,9 @@ class MemoryParams:
         700.0, "T_time: transfer WM -> LTM when the processing time exceeds it (0 = no limit)", "ms"
     )
     max_retrieved: int = _p(2, "Locations retrieved from LTM per frame (Alg. 3)", "locations")
+    max_local_retrieved: int = _p(
+        2, "SLAM mode: locations retrieved per frame from LTM because they are linked to the local map's "
+        "nodes near the robot (RTAB-Map's RGBD/MaxLocalRetrieved)", "locations")
     max_wm_size: int = _p(
         0, "Most locations in WM: over it, the lowest-weighted go to LTM every frame (0 = no limit; "
         "RTAB-Map's Rtabmap/MemoryThr)", "locations")
@@ -173,6 +176,7 @@ class MemoryParams:
                self.bad_signature_ratio, "in [0, 1]")
         _check(self.time_threshold_ms >= 0.0, "memory.time_threshold_ms", self.time_threshold_ms, ">= 0")
         _check(self.max_retrieved >= 0, "memory.max_retrieved", self.max_retrieved, ">= 0")
+        _check(self.max_local_retrieved >= 0, "memory.max_local_retrieved", self.max_local_retrieved, ">= 0")
         _check(self.max_wm_size >= 0, "memory.max_wm_size", self.max_wm_size, ">= 0")
         _check(0.0 < self.time_target_ratio <= 1.0, "memory.time_target_ratio", self.time_target_ratio, "in (0, 1]")
         _check(self.wm_cap_growth >= 0.0, "memory.wm_cap_growth", self.wm_cap_growth, ">= 0")
@@ -526,6 +530,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Rtabmap/TimeThr": ("memory.time_threshold_ms", float),
     "Rtabmap/MaxRetrieved": ("memory.max_retrieved", int),
     "Rtabmap/MemoryThr": ("memory.max_wm_size", int),
+    "RGBD/MaxLocalRetrieved": ("memory.max_local_retrieved", int),
     "RGBD/LocalImmunizationRatio": ("memory.local_immunization_ratio", float),
     "RGBD/LocalRadius": ("memory.local_radius", float),
     "Rtabmap/LoopThr": ("bayes.loop_threshold", float),

@@ -163,9 +163,11 @@ class Rtabmap:
         self._new_loops: list[tuple[Link, tuple[int, int, int]]] = []
         # Verified loop closures that would join two unconnected maps, waiting for agreement.
         self._merge_candidates: list[Link] = []
-        # Last optimised pose of every node that was in a local map (an old map's own frame),
-        # kept when the node is transferred to LTM.
+        # Last optimised pose of every node that left the local map (transferred to LTM, or in a
+        # map not connected to the current one), in one frame that does not move with the
+        # solutions ("world"): _map_pose(). _T_world_local: the current solution's frame in it.
         self._map_poses: dict[int, np.ndarray] = {}
+        self._T_world_local = transforms.identity()
         # A map merged this frame: its last optimised poses, moved onto the current one by the
         # confirming loop closure (the initial guess of the merged local map).
         self._merged_map_guess: dict[int, np.ndarray] = {}
@@ -215,9 +217,14 @@ class Rtabmap:
         # Alg. 1 line 17: join the thread writing the previous frame to LTM (counts in pTime).
         self.memory.join()
         watch.lap("database")
-        # Retrieval (Alg. 3): neighbours of the highest hypothesis come back from LTM.
+        # Retrieval (Alg. 3): neighbours of the highest hypothesis come back from LTM, after (SLAM
+        # mode) those of the local map around the robot.
+        retrieving = self._local_retrieval(stats.location_id)
         if hypothesis.location_id:
-            stats.retrieved = len(self.memory.retrieve(hypothesis.location_id))
+            retrieving += [n for n in self.memory.retrieval_candidates(hypothesis.location_id)
+                           if n not in retrieving][: self.params.memory.max_retrieved]
+        if retrieving:
+            stats.retrieved = len(self.memory.retrieve(retrieving))
             self._wm_changed |= bool(stats.retrieved)
         watch.lap("retrieval")
         # Local map (2014 §II-C), optimised every frame; graph work counts in pTime.
@@ -397,9 +404,11 @@ class Rtabmap:
         the graph kept for every node): an old map whose nodes come back from LTM is aligned with
         them for a merge."""
         for node in nodes:
-            self._optimized.pop(node, None)
+            pose = self._optimized.pop(node, None)
             if not transferred_to_ltm:
                 self._map_poses.pop(node, None)
+            elif pose is not None:
+                self._map_poses[node] = self._T_world_local @ pose
             self._merged_map_guess.pop(node, None)
         if transferred_to_ltm:
             # Their caches: Bayes neighbourhoods and gtsam factors (else they grow with every node
@@ -564,6 +573,8 @@ class Rtabmap:
                      new_from.map_id, new_to.map_id, agreeing + 1, apart)
             self._merge_candidates = []
             self._merged_map_guess = self._aligned_old_map(link, old_map)
+            # The old map's kept poses move with it, into the current map's placement.
+            self._map_poses.update({n: self._T_world_local @ T for n, T in self._merged_map_guess.items()})
             return True
         log.info("loop closure %d -> %d would merge maps %d and %d: held until another one agrees",
                  link.from_id, link.to_id, new_from.map_id, new_to.map_id)
@@ -574,7 +585,7 @@ class Rtabmap:
         """The old map's last optimised poses, moved so ``link`` holds exactly from the new node's
         pose in the current local map. The new node is not optimised yet (verification comes
         first): its pose is chained by odometry from the session's newest optimised node."""
-        old_poses = {n: self._map_poses[n] for n in old_map if n in self._map_poses}
+        old_poses = {n: self._map_poses[n] for n in old_map if n in self._map_poses}  # not in the local map
         previous = max((n for n in self._optimized if self.memory.map_ids.get(n) == self.memory.map_id),
                        default=None)
         if link.to_id not in old_poses or previous is None:
@@ -588,8 +599,9 @@ class Rtabmap:
     def _old_map_poses(self, a: int, b: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Poses of two nodes of one old map in a common frame: its last optimised local map, or
         the odometry of their session (after reopening a database), or None."""
-        if a in self._map_poses and b in self._map_poses:
-            return self._map_poses[a], self._map_poses[b]
+        pose_a, pose_b = self._map_pose(a), self._map_pose(b)
+        if pose_a is not None and pose_b is not None:
+            return pose_a, pose_b
         sa, sb = self.memory.signatures[a], self.memory.signatures[b]
         if sa.map_id == sb.map_id:
             return sa.T_odom_base, sb.T_odom_base
@@ -757,13 +769,41 @@ class Rtabmap:
         else:
             poses = self._leaf_update(newest, leaf)
             self._local_links.append(leaf)
+        self._follow_local_frame(poses, rigid=leaf is not None)
         self._optimized = poses
         self._solved_version = memory.graph.version
         self._wm_changed = False
-        self._map_poses.update(poses)
         self._T_map_odom = poses[newest] @ transforms.inverse(memory.signatures[newest].T_odom_base)
         return had_loops and not any(memory.graph.link(l.from_id, l.to_id) and l.key() not in self._inactive_links
                                      for l, _ in self._new_loops)
+
+    def _follow_local_frame(self, poses: dict[int, np.ndarray], rigid: bool) -> None:
+        """Before ``poses`` replaces the last solution: nodes leaving the local map keep their
+        last pose in the world frame, and the world frame follows the new solution's (the rigid
+        change that best maps the nodes in both solutions; exact for a ``rigid`` leaf update).
+
+        Each solution is rooted at its newest node's odometry pose, so its frame moves with the
+        odometry drift: poses kept from solutions minutes apart were metres apart in one old
+        map, no two loop closures to it agreed, and the last of 5 sessions at T_time 0.1 s never
+        merged."""
+        previous = self._optimized
+        for node, pose in previous.items():
+            if node not in poses:
+                self._map_poses[node] = self._T_world_local @ pose
+        common = [n for n in poses if n in previous]
+        if not common:
+            return  # a map not connected to the last one: its frame is as good as any
+        if rigid:
+            change = previous[common[0]] @ transforms.inverse(poses[common[0]])
+        else:
+            change = _rigid_change(np.stack([previous[n] for n in common]), np.stack([poses[n] for n in common]))
+        self._T_world_local = self._T_world_local @ change
+
+    def _map_pose(self, node: int) -> Optional[np.ndarray]:
+        """Last optimised pose of ``node`` in the world frame (None: never in a local map)."""
+        if node in self._optimized:
+            return self._T_world_local @ self._optimized[node]
+        return self._map_poses.get(node)
 
     def _leaf_link(self, newest: int, solved: Optional[int]) -> Optional[Link]:
         """The link from the last solution to ``newest`` when that one link is all that changed.
@@ -836,17 +876,33 @@ class Rtabmap:
         ``memory.local_radius``, at most ``memory.local_immunization_ratio`` of WM: they stay
         in WM so the local map around the robot survives transfers (RTAB-Map's
         RGBD/LocalImmunizationRatio and RGBD/LocalRadius, Rtabmap::process before Memory::forget)."""
-        params = self.params.memory
-        budget = int(params.local_immunization_ratio * len(self.memory.wm))
+        budget = int(self.params.memory.local_immunization_ratio * len(self.memory.wm))
         if budget <= 0 or newest not in self._optimized:
             return set()
-        ids = [n for n in self._optimized if n in self.memory.wm]
+        nearest = self._local_nodes_near(self._optimized[newest][:3, 3])
+        return set([n for n in nearest if n in self.memory.wm][:budget])
+
+    def _local_retrieval(self, newest: int) -> list[int]:
+        """SLAM mode: LTM locations linked to the local map's nodes near the robot (up to
+        ``memory.max_local_retrieved``), located by the last solution and the new node's odometry.
+        Nothing when the last solution is not the new node's map (first node of a session)."""
+        memory = self.memory
+        limit = self.params.memory.max_local_retrieved
+        sig = memory.signatures.get(newest)
+        if (limit <= 0 or sig is None or sig.T_odom_base is None or not memory.ltm_size
+                or not any(n in self._optimized for n in memory.graph.neighbors(newest, (LinkType.NEIGHBOR,)))):
+            return []
+        position = (self._T_map_odom @ sig.T_odom_base)[:3, 3]
+        return memory.local_retrieval_candidates(self._local_nodes_near(position), limit)
+
+    def _local_nodes_near(self, position: np.ndarray) -> list[int]:
+        """Nodes of the local map within ``memory.local_radius`` of ``position``, nearest first."""
+        ids = list(self._optimized)
         if not ids:
-            return set()
+            return []
         xyz = np.stack([self._optimized[n][:3, 3] for n in ids])
-        distance = np.linalg.norm(xyz - self._optimized[newest][:3, 3], axis=1)
-        nearest = np.argsort(distance, kind="stable")[:budget]
-        return {ids[i] for i in nearest if distance[i] <= params.local_radius}
+        distance = np.linalg.norm(xyz - position, axis=1)
+        return [ids[i] for i in np.argsort(distance, kind="stable") if distance[i] <= self.params.memory.local_radius]
 
     def _fill_sizes(self, stats: Statistics) -> None:
         memory = self.memory
@@ -856,6 +912,18 @@ class Rtabmap:
         stats.vocabulary_size = len(memory.vocabulary)
         stats.words_added = memory.words_added
         stats.local_map_size = len(self._optimized)
+
+
+def _rigid_change(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """The rigid transform ``C`` that best maps poses ``B`` (N,4,4) onto ``A``, ``A ≈ C @ B``:
+    chordal mean of the rotations, then the translation of the centroids (well defined for
+    nodes on a line, where a fit of positions alone leaves the roll free)."""
+    U, _, Vt = np.linalg.svd((A[:, :3, :3] @ B[:, :3, :3].transpose(0, 2, 1)).sum(axis=0))
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    C = transforms.identity()
+    C[:3, :3] = R
+    C[:3, 3] = A[:, :3, 3].mean(axis=0) - R @ B[:, :3, 3].mean(axis=0)
+    return C
 
 
 def _max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: bool) -> float:

@@ -103,8 +103,9 @@ def test_sessions_merge_with_working_memory_capped(tmp_path):
     with Rtabmap(params, tmp_path / "map.db") as rtabmap:
         stats = [rtabmap.process(frame) for frame in frames]
     # Over the cap only what transfer never takes: the highest hypothesis' neighbourhood (Alg. 4)
-    # and the locations retrieved this frame. (Uncapped, WM ends with every location but STM's.)
-    protected = 2 * params.bayes.neighborhood + 1 + params.memory.max_retrieved
+    # and the locations retrieved this frame (around the hypothesis and around the robot).
+    # (Uncapped, WM ends with every location but STM's.)
+    protected = 2 * params.bayes.neighborhood + 1 + params.memory.max_retrieved + params.memory.max_local_retrieved
     assert max(s.wm_size for s in stats) <= 15 + protected < len(frames) - params.memory.stm_size
     assert stats[-1].ltm_size >= len(frames) - 15 - protected - params.memory.stm_size
     assert sum(s.retrieved for s in stats if s.map_id == 1) > 0

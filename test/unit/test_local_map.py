@@ -176,6 +176,32 @@ def test_max_error_ratio_flags_a_link_bent_beyond_its_standard_deviation():
     assert _max_error_ratio(poses, [link], planar=True) == pytest.approx(np.deg2rad(2.0) / 0.01, rel=1e-3)
 
 
+def test_poses_kept_for_nodes_that_left_the_local_map_stay_consistent_as_its_frame_moves(tmp_path):
+    """Each local map solution is rooted at its newest node's odometry pose, so its frame moves
+    from one solution to the next; the poses kept for nodes that left it (transferred to LTM)
+    must still be placed right relative to each other and to the map, or no two loop closures to
+    that map agree on a merge."""
+    rtabmap = Rtabmap(Params(), tmp_path / "frames.db")
+    truth = {n: transforms.from_xy_yaw(1.0 * n, 0.2 * n * n / 10, 0.1 * n) for n in range(1, 8)}
+
+    def seen(nodes, frame):  # a solution holding ``nodes``, in a frame ``frame`` away from the truth's
+        return {n: frame @ truth[n] for n in nodes}
+
+    rtabmap._optimized = seen([1, 2, 3, 4], transforms.identity())
+    moves = [transforms.from_xy_yaw(0.3, -0.2, 0.05), transforms.from_xy_yaw(-1.0, 0.5, -0.4),
+             transforms.from_xy_yaw(2.0, 1.0, 1.2)]
+    for step, (nodes, frame) in enumerate(zip([[2, 3, 4, 5], [3, 4, 5, 6], [5, 6, 7]], moves)):
+        if step == 1:
+            rtabmap._forget([2], transferred_to_ltm=True)
+        poses = seen(nodes, frame)
+        rtabmap._follow_local_frame(poses, rigid=step == 0)
+        rtabmap._optimized = poses
+    for a, b in [(1, 2), (1, 4), (2, 7), (4, 6), (3, 7)]:
+        np.testing.assert_allclose(transforms.relative(rtabmap._map_pose(a), rtabmap._map_pose(b)),
+                                   transforms.relative(truth[a], truth[b]), atol=1e-9)
+    rtabmap.close()
+
+
 def _two_corridor_sessions(tmp_path):
     """Rtabmap whose memory holds two unconnected sessions driving one corridor (0.5 m steps).
 

@@ -137,7 +137,7 @@ def test_retrieval_brings_back_time_neighbours_first_with_their_words(tmp_path, 
     assert not any(memory.vocabulary.contains(int(w)) for w in lost)
     # Time neighbours of 4 by hops: 5 and 3 (1 hop), then 2 and 6 (2 hops); 1 is in WM.
     assert memory.retrieval_candidates(4) == [3, 5, 2, 6]
-    assert memory.retrieve(4) == [3, 5]  # Rtabmap/MaxRetrieved = 2
+    assert memory.retrieve(memory.retrieval_candidates(4)[:2]) == [3, 5]  # Rtabmap/MaxRetrieved = 2
     assert {3, 5} <= set(memory.wm)
     assert all(memory.vocabulary.contains(int(w)) for w in lost)
     assert memory.vocabulary.references(int(lost[0])) == {5: 1}
@@ -148,6 +148,22 @@ def test_retrieval_brings_back_time_neighbours_first_with_their_words(tmp_path, 
     memory.retrieved_now = [3, 5]
     memory.words_added = 100 * WORDS
     assert not {3, 5} & set(memory.transfer(protected=set(), locations=4, balance_words=True))
+
+
+def test_local_retrieval_takes_ltm_links_of_the_nearest_nodes_first_then_their_neighbours(tmp_path, descriptors):
+    memory = filled(tmp_path, descriptors, {n: 0 for n in range(1, 9)})
+    memory.add_link(Link(8, 2, LinkType.LOOP_INTRA))
+    memory.words_added = 10 * WORDS
+    assert memory.transfer(protected={1, 4, 8}, locations=3, balance_words=False) == [2, 3, 5]
+    # Node 4 is nearest the robot: its LTM links first (newest first: 5, 3), then node 8's (its
+    # loop closure to 2) ...
+    assert memory.local_retrieval_candidates([4, 8], limit=3) == [5, 3, 2]
+    assert memory.local_retrieval_candidates([4, 8], limit=2) == [5, 3]
+    # ... then, with room left, the LTM neighbours of those found (3 -> 2).
+    assert memory.local_retrieval_candidates([4], limit=10) == [5, 3, 2]
+    assert memory.local_retrieval_candidates([4], limit=0) == []
+    assert memory.retrieve([5, 3]) == [5, 3]
+    assert memory.retrieve([5, 3, 4]) == []  # already in WM: nothing to load
 
 
 def test_bad_signature_threshold_follows_the_average(tmp_path):

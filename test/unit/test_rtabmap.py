@@ -138,15 +138,20 @@ def test_small_time_threshold_bounds_wm_and_retrieval_brings_back_neighbours(tmp
     with Rtabmap(params, tmp_path / "m.db") as rtabmap:
         memory = rtabmap.memory
         retrievals = []
-        original = memory.retrieve
+        original, candidates = memory.retrieve, memory.retrieval_candidates
+        hypothesis = {}
 
-        def spy(hypothesis_id):
-            ids = original(hypothesis_id)
+        def spy_candidates(hypothesis_id):
+            hypothesis.update(id=hypothesis_id, hops=memory.graph.hops_from(hypothesis_id, params.bayes.neighborhood))
+            return candidates(hypothesis_id)
+
+        def spy(ids):
+            ids = original(ids)
             if ids:
-                retrievals.append((hypothesis_id, ids, memory.graph.hops_from(hypothesis_id, params.bayes.neighborhood)))
+                retrievals.append((hypothesis["id"], ids, hypothesis["hops"]))
             return ids
 
-        memory.retrieve = spy
+        memory.retrieve, memory.retrieval_candidates = spy, spy_candidates
         stats = run(rtabmap, sequence, len(sequence))
     locations = len(stats) - sum(1 for s in stats if s.merged_id)
     # Transfer (Alg. 4) every frame: locations go to LTM, WM stops growing. What stays is what
