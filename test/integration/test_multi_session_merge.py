@@ -112,3 +112,33 @@ def test_sessions_merge_with_working_memory_capped(tmp_path):
     assert sum(s.loop_closure_type == "loop_inter" for s in stats) >= 2
     export_global_map(tmp_path / "map.db", tmp_path / "export", Params())
     check_export(tmp_path / "export", truth)
+
+
+def test_local_retrieval_brings_back_the_map_around_the_robot(tmp_path):
+    """RGBD/MaxLocalRetrieved alone (no retrieval around the hypothesis, Rtabmap/MaxRetrieved=0):
+    with WM capped at 15, the locations that come back from LTM are the ones around the robot
+    (ground truth within RGBD/LocalRadius, plus the drift of a few metres of odometry), and the
+    sessions still merge."""
+    frames, truth = played(back_to_back=False)
+    params = Params().with_overrides(["Rtabmap/MemoryThr=15", "Mem/STMSize=5", "Rtabmap/MaxRetrieved=0"])
+    retrieved: list[tuple[int, list[int]]] = []  # (frame, ids)
+    with Rtabmap(params, tmp_path / "map.db") as rtabmap:
+        original = rtabmap.memory.retrieve
+
+        def spy(ids):
+            ids = original(ids)
+            retrieved.append((len(stats), ids))
+            return ids
+
+        rtabmap.memory.retrieve = spy
+        stats = []
+        for frame in frames:
+            stats.append(rtabmap.process(frame))
+    assert 0 < max(s.retrieved for s in stats) <= params.memory.max_local_retrieved
+    position = {s.location_id: truth.poses[k][:3, 3] for k, s in enumerate(stats) if s.location_id}
+    distances = [np.linalg.norm(position[n] - truth.poses[k][:3, 3]) for k, ids in retrieved for n in ids]
+    assert len(distances) >= 10
+    assert max(distances) <= params.memory.local_radius + 3.0
+    assert sum(s.loop_closure_type == "loop_inter" for s in stats) >= 2
+    export_global_map(tmp_path / "map.db", tmp_path / "export", Params())
+    check_export(tmp_path / "export", truth)

@@ -202,6 +202,37 @@ def test_poses_kept_for_nodes_that_left_the_local_map_stay_consistent_as_its_fra
     rtabmap.close()
 
 
+def test_an_old_sessions_kept_poses_are_not_rewritten_by_a_later_sessions_local_map(tmp_path):
+    """A part of an old map in WM, joined to the rest only through LTM, follows whatever the
+    current session's loop closures say (a false one moves it without tension): leaving the
+    local map again, its nodes keep the pose their own session gave them."""
+    rtabmap = Rtabmap(Params(), tmp_path / "frames.db")
+    memory = rtabmap.memory
+    for node in (1, 2, 3):
+        memory.map_ids[node] = 0
+    for node in (10, 11):
+        memory.map_ids[node] = 1
+    truth = {n: transforms.from_xy_yaw(1.0 * n, 0.0, 0.0) for n in (1, 2, 3, 10, 11)}
+    memory.map_id = 0
+    rtabmap._optimized = {n: truth[n] for n in (1, 2, 3)}
+    rtabmap._follow_local_frame({3: truth[3]}, rigid=False)  # session 0's nodes 1 and 2 leave
+    rtabmap._optimized = {3: truth[3]}
+    kept = rtabmap._map_pose(2).copy()
+    memory.map_id = 1  # session 1: node 2 comes back, bent 26 m by a false loop closure, and leaves
+    bent = transforms.from_xy_yaw(26.0, 0.0, 0.0) @ truth[2]
+    rtabmap._follow_local_frame({2: bent, 10: truth[10]}, rigid=False)
+    rtabmap._optimized = {2: bent, 10: truth[10]}
+    np.testing.assert_allclose(rtabmap._map_pose(2), kept)
+    rtabmap._follow_local_frame({10: truth[10], 11: truth[11]}, rigid=False)
+    rtabmap._optimized = {10: truth[10], 11: truth[11]}
+    np.testing.assert_allclose(rtabmap._map_pose(2), kept)
+    # The session being mapped keeps its nodes' latest poses.
+    rtabmap._follow_local_frame({11: truth[11]}, rigid=False)
+    np.testing.assert_allclose(transforms.relative(rtabmap._map_pose(10), rtabmap._map_pose(11)),
+                               transforms.relative(truth[10], truth[11]), atol=1e-9)
+    rtabmap.close()
+
+
 def _two_corridor_sessions(tmp_path):
     """Rtabmap whose memory holds two unconnected sessions driving one corridor (0.5 m steps).
 
