@@ -267,6 +267,24 @@ def _inter_link(new_id: int, old_id: int, error_xy=(0.0, 0.0)) -> Link:
     return Link(new_id, old_id, LinkType.LOOP_INTER, T, ODOM_INFO)
 
 
+def test_merge_agreement_takes_the_session_side_from_the_local_map_not_the_drifting_odometry(tmp_path):
+    """Session 1's odometry overestimates every step by 10 % (its local map, refined by the
+    scans, does not): two true loop closures 6 m apart imply old-map alignments 0.6 m apart by
+    odometry, over the agreement tolerance, and agree on the local map's poses."""
+    rtabmap = _two_corridor_sessions(tmp_path)
+    try:
+        for k in range(30):
+            rtabmap.memory.signatures[31 + k].T_odom_base = transforms.from_xy_yaw(0.55 * k, 0.0, 0.0)
+        assert rtabmap._merge_allows(_inter_link(37, 7)) is False
+        # Without a local map the odometry is all there is: the second one disagrees, held.
+        assert rtabmap._merge_allows(_inter_link(49, 19)) is False
+        rtabmap._merge_candidates = [_inter_link(37, 7)]
+        rtabmap._optimized = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(18)}
+        assert rtabmap._merge_allows(_inter_link(49, 19)) is True
+    finally:
+        rtabmap.close()
+
+
 def test_a_map_merge_waits_for_a_second_agreeing_loop_closure_far_enough_away(tmp_path):
     rtabmap = _two_corridor_sessions(tmp_path)
     try:
