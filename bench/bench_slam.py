@@ -380,7 +380,9 @@ def main(argv=None) -> int:
     parser.add_argument("--config", default=None, help="parameter file (default: config/rtabmap.yaml)")
     parser.add_argument("--set", action="append", default=[], dest="overrides", metavar="NAME=VALUE")
     parser.add_argument("--out", type=Path, default=None, help="results JSON")
-    parser.add_argument("--workdir", type=Path, default=None, help="databases and exports (default: a temp dir)")
+    parser.add_argument("--workdir", type=Path, default=None,
+                        help="keep the databases and exports there (default: a temporary directory, deleted at the "
+                        "end: the long run's database alone is ~4 GB)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     data = args.data or REPO / "bench" / "data" / ("sim2_small" if args.quick else "sim5")
@@ -389,8 +391,16 @@ def main(argv=None) -> int:
     gt = read_tum(data / "ground_truth.txt")
     bags = bags_of(data)
     parts = args.parts.split(",")
-    work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_slam_"))
-    work.mkdir(parents=True, exist_ok=True)
+    if args.workdir is None:
+        with tempfile.TemporaryDirectory(prefix="bench_slam_") as tmp:
+            return run_parts(args, parser, params, data, gt, bags, parts, Path(tmp))
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    return run_parts(args, parser, params, data, gt, bags, parts, args.workdir)
+
+
+def run_parts(args, parser, params: Params, data: Path, gt: Trajectory, bags: list[Path], parts: list[str],
+              work: Path) -> int:
+    """Run the ``parts`` with databases and exports in ``work``; write and print the results."""
     results: dict = {"data": str(data), "bags": [b.name for b in bags], "params_overrides": args.overrides,
                      "machine": {"cpus": os.cpu_count(), "load_avg_start": os.getloadavg()}, "paper": PAPER}
     t0 = time.perf_counter()
