@@ -285,6 +285,22 @@ def test_merge_agreement_takes_the_session_side_from_the_local_map_not_the_drift
         rtabmap.close()
 
 
+def test_a_loop_closure_to_a_joined_session_far_from_its_kept_pose_is_rejected(tmp_path):
+    """Once the sessions are joined, an inter-session loop closure that puts the old node farther
+    than graph.merge_min_separation from its kept pose is a look-alike: rejected before the
+    optimiser, which may have nothing to judge it against (the old node's part of the map in WM
+    joined to the local map only through it). A true one is added."""
+    rtabmap = _two_corridor_sessions(tmp_path)
+    try:
+        rtabmap._map_poses = {1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)}  # session 0
+        rtabmap._optimized = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(25)}
+        rtabmap.memory.add_loop_closure(_inter_link(37, 7))  # the sessions are joined
+        assert rtabmap._merge_allows(_inter_link(55, 25, error_xy=(15.0, 0.0))) is False
+        assert rtabmap._merge_allows(_inter_link(55, 25, error_xy=(0.3, 0.1))) is True
+    finally:
+        rtabmap.close()
+
+
 def test_a_map_merge_waits_for_a_second_agreeing_loop_closure_far_enough_away(tmp_path):
     rtabmap = _two_corridor_sessions(tmp_path)
     try:
