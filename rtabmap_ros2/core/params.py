@@ -301,7 +301,9 @@ class GraphParams:
         5.0, "A loop closure joining two maps that are not connected yet (an inter-session merge) "
         "is held until a second one, between places at least this far from the first on both maps, "
         "agrees on the maps' alignment: perceptual aliasing (look-alike posters, symmetric corridors) "
-        "repeats over a few metres, a true overlap does not end there (0 = merge on the first)", "m")
+        "repeats over a few metres, a true overlap does not end there (0 = merge on the first). Once "
+        "joined, an inter-session loop closure putting the old node farther than this from its kept pose "
+        "is rejected as a look-alike", "m")
     odom_reset_jump: float = _p(
         1.0, "Odometry reset detection: a new map starts when odometry moves between two frames by more "
         "than this plus a plausible speed x the time between them (the first frames after a reset were "
