@@ -553,6 +553,7 @@ class Rtabmap:
         self._merge_candidates = [c for c in self._merge_candidates
                                   if c.from_id in signatures and c.to_id in signatures]
         new_from, new_to = signatures[link.from_id], signatures[link.to_id]
+        new_pose = self._new_node_pose(link.from_id)
         agreeing, apart = 0, 0.0
         for held in self._merge_candidates:
             if held.to_id not in old_map:
@@ -560,7 +561,7 @@ class Rtabmap:
             old_poses = self._old_map_poses(held.to_id, link.to_id)
             if old_poses is None:
                 continue
-            session_poses = self._session_poses(held.from_id, link.from_id)
+            session_poses = self._session_poses(held.from_id, link.from_id, new_pose)
             # Pose of the old map's frame in the current session's frame, per link.
             implied = [T_from @ l.T_from_to @ transforms.inverse(T_to) for l, T_from, T_to in
                        ((held, session_poses[0], old_poses[0]), (link, session_poses[1], old_poses[1]))]
@@ -625,16 +626,17 @@ class Rtabmap:
         return (self._optimized[previous] @ transforms.inverse(signatures[previous].T_odom_base)
                 @ signatures[node].T_odom_base)
 
-    def _session_poses(self, a: int, new: int) -> tuple[np.ndarray, np.ndarray]:
-        """Poses of ``a`` (an earlier node of the session being mapped) and ``new`` (its new node)
-        in a common frame: the world frame of the kept poses, i.e. the local map's scan-refined
-        chain, when both are known, else their odometry poses. (Odometry alone drifted 1.6-2 m
-        over 10 m on the simulated sessions: two true loop closures that far apart disagreed.)"""
-        pose_a, pose_new = self._map_pose(a), self._new_node_pose(new)
-        if pose_a is None or pose_new is None:
+    def _session_poses(self, a: int, new: int, new_pose: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Poses of ``a`` (an earlier node of the session being mapped) and ``new`` (its new node,
+        at ``new_pose`` from :meth:`_new_node_pose`) in a common frame: the world frame of the kept
+        poses, i.e. the local map's scan-refined chain, when both are known, else their odometry
+        poses. (Odometry alone drifted 1.6-2 m over 10 m on the simulated sessions: two true loop
+        closures that far apart disagreed.)"""
+        pose_a = self._map_pose(a)
+        if pose_a is None or new_pose is None:
             signatures = self.memory.signatures
             return signatures[a].T_odom_base, signatures[new].T_odom_base
-        return pose_a, self._T_world_local @ pose_new
+        return pose_a, self._T_world_local @ new_pose
 
     def _old_map_poses(self, a: int, b: int) -> Optional[tuple[np.ndarray, np.ndarray]]:
         """Poses of two nodes of one old map in a common frame: its last optimised local map, or
@@ -847,15 +849,19 @@ class Rtabmap:
         part joined to the rest only through LTM follows a false loop closure without tension
         (seed 5 at T_time 0.1 s: 4 false loop closures moved such a part 26 m, and no two loop
         closures of the next sessions to that map agreed any more)."""
-        if node not in self._map_poses or self.memory.map_ids.get(node) == self.memory.map_id:
+        if self._local_map_sets_pose(node):
             self._map_poses[node] = self._T_world_local @ pose
+
+    def _local_map_sets_pose(self, node: int) -> bool:
+        """True when the local map's pose of ``node`` is to replace its kept one: a node of the
+        session being mapped, or one with no kept pose yet (_keep_map_pose says why)."""
+        return node not in self._map_poses or self.memory.map_ids.get(node) == self.memory.map_id
 
     def _map_pose(self, node: int) -> Optional[np.ndarray]:
         """Kept pose of ``node`` in the world frame (see _keep_map_pose; None: never in a local map)."""
-        kept = self._map_poses.get(node)
-        if node in self._optimized and (kept is None or self.memory.map_ids.get(node) == self.memory.map_id):
+        if node in self._optimized and self._local_map_sets_pose(node):
             return self._T_world_local @ self._optimized[node]
-        return kept
+        return self._map_poses.get(node)
 
     def _leaf_link(self, newest: int, solved: Optional[int]) -> Optional[Link]:
         """The link from the last solution to ``newest`` when that one link is all that changed.
