@@ -55,7 +55,9 @@ RSS_EVERY = 100  # frames between memory samples
 # The low-T_time run (memory management must act) and the long run (--long-data, 10,000+ frames).
 LOW_TIME_THRESHOLD_MS = 100.0
 LONG_TIME_THRESHOLD_MS = 200.0
-STATS_KEPT = ("process_time_ms", "wm_size", "retrieved", "transferred", *(f"time_{k}_ms" for k in TIMING_KEYS))
+STATS_KEPT = ("process_time_ms", "wm_size", "local_map_size", "retrieved", "transferred", "loop_closure_id",
+              "loop_closure_type", *(f"time_{k}_ms" for k in TIMING_KEYS))
+TOP_SPIKES = 12  # the slowest frames, each with its step times (what to look at when max pTime is over)
 FALSE_LOOP_DISTANCE_M = 1.0
 FALSE_LOOP_ANGLE_RAD = np.deg2rad(30.0)
 # A loop closure link is wrong when its transform is farther than this from the ground truth's.
@@ -256,6 +258,9 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
                      if params.memory.time_threshold_ms > 0 else None},
         "time_medians_ms": {k: float(np.median([r[f"time_{k}_ms"] for r in stats_rows])) for k in TIMING_KEYS},
         "time_p95_ms": {k: float(np.percentile([r[f"time_{k}_ms"] for r in stats_rows], 95)) for k in TIMING_KEYS},
+        "ptime_spikes": [{"frame": int(i) + 1, **{k: (round(v, 1) if isinstance(v, float) else v)
+                                                  for k, v in stats_rows[i].items()}}
+                         for i in np.argsort(-ptime)[:TOP_SPIKES]],
         "sessions": [{"map_id": s.map_id, "source": s.source, "frames": s.frames, "nodes": s.nodes,
                       "loop_intra": s.loop_intra, "loop_inter": s.loop_inter, "rejected": s.rejected,
                       "max_ptime_ms": round(s.max_process_time_ms, 1),
