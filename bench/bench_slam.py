@@ -29,6 +29,7 @@ Writes ``bench/results/slam.json`` (``slam_quick.json`` with ``--quick``).
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import logging
 import os
@@ -185,6 +186,19 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
     retrieved_per_session: dict[int, int] = {}
 
     cpu_marks = [time.thread_time()]  # main thread CPU at each frame's end: CPU per frame
+    # CPython's full (generation 2) garbage collections: each one lands in whatever frame step
+    # allocates at that moment (they were the 40-120 ms "retrieval" spikes).
+    full_gc_ms: list[float] = []
+    gc_started = [0.0]
+
+    def on_gc(phase: str, info: dict) -> None:
+        if info["generation"] == 2:
+            if phase == "start":
+                gc_started[0] = time.perf_counter()
+            else:
+                full_gc_ms.append((time.perf_counter() - gc_started[0]) * 1000.0)
+
+    gc.callbacks.append(on_gc)
 
     def on_stats(s) -> None:
         cpu_marks.append(time.thread_time())
@@ -218,6 +232,7 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
         local = rtabmap.local_map()
         rtabmap.flush()
     elapsed = time.perf_counter() - t0
+    gc.callbacks.remove(on_gc)
     usage1 = resource.getrusage(resource.RUSAGE_SELF)
     cpu_s = (usage1.ru_utime - usage0.ru_utime) + (usage1.ru_stime - usage0.ru_stime)
     cpu_ms = np.diff(np.asarray(cpu_marks)) * 1000.0
@@ -258,6 +273,8 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
                      if params.memory.time_threshold_ms > 0 else None},
         "time_medians_ms": {k: float(np.median([r[f"time_{k}_ms"] for r in stats_rows])) for k in TIMING_KEYS},
         "time_p95_ms": {k: float(np.percentile([r[f"time_{k}_ms"] for r in stats_rows], 95)) for k in TIMING_KEYS},
+        "full_gc_ms": {"count": len(full_gc_ms), "median": float(np.median(full_gc_ms)) if full_gc_ms else 0.0,
+                       "max": max(full_gc_ms, default=0.0)},
         "ptime_spikes": [{"frame": int(i) + 1, **{k: (round(v, 1) if isinstance(v, float) else v)
                                                   for k, v in stats_rows[i].items()}}
                          for i in np.argsort(-ptime)[:TOP_SPIKES]],
@@ -322,6 +339,8 @@ def print_table(results: dict) -> None:
             ("pTime p95 (ms)", ("ptime_ms", "p95"), None), ("pTime p99 (ms)", ("ptime_ms", "p99"), None),
             ("pTime max (ms)", ("ptime_ms", "max"), "max_ptime_ms"),
             ("frames over T", ("ptime_ms", "over_T"), None), ("frames over T (ratio)", ("ptime_ms", "over_T_ratio"), None),
+            ("full garbage collections", ("full_gc_ms", "count"), None),
+            ("full garbage collection max (ms)", ("full_gc_ms", "max"), None),
             ("nodes", ("nodes",), "nodes"),
             ("WM size at end", ("wm_size",), "wm_size"), ("WM size max", ("wm_max",), None),
             ("WM per session", ("wm_per_session",), "wm_per_session"),
