@@ -56,6 +56,9 @@ REFERENCE = REPO.parent / "shared" / "reference"
 OLD_DEFAULTS = ("Kp/TfIdfLikelihoodUsed=false", "Kp/NewWordsComparedTogether=false",
                 "Mem/RehearsalSimilarity=0.2", "Rtabmap/LoopRatio=0", "Bayes/VirtualPlacePriorThr=0.9",
                 "VhEp/Enabled=false")
+# The epipolar inliers' coverage of the image (not in RTAB-Map) came after the rest: off in the rows
+# that measured epipolar verification alone.
+NO_COVERAGE = "bayes.epipolar_min_coverage=0"
 ABLATION = (
     ("old defaults", OLD_DEFAULTS),
     ("+ tf-idf likelihood", OLD_DEFAULTS + ("Kp/TfIdfLikelihoodUsed=true",)),
@@ -63,9 +66,13 @@ ABLATION = (
     ("+ rehearsal similarity 0.6", OLD_DEFAULTS + ("Mem/RehearsalSimilarity=0.6",)),
     ("+ loop ratio 0.9", OLD_DEFAULTS + ("Rtabmap/LoopRatio=0.9",)),
     ("+ virtual place prior 0.95", OLD_DEFAULTS + ("Bayes/VirtualPlacePriorThr=0.95",)),
-    ("+ epipolar verification", OLD_DEFAULTS + ("VhEp/Enabled=true",)),
+    ("+ epipolar verification", OLD_DEFAULTS + ("VhEp/Enabled=true", NO_COVERAGE)),
+    ("+ epipolar verification, coverage 0.1", OLD_DEFAULTS + ("VhEp/Enabled=true", "bayes.epipolar_min_coverage=0.1")),
     ("all but virtual place prior", ("Bayes/VirtualPlacePriorThr=0.9",)),
     ("all but epipolar verification", ("VhEp/Enabled=false",)),
+    ("all but inlier coverage", (NO_COVERAGE,)),
+    ("all, coverage 0.05", ("bayes.epipolar_min_coverage=0.05",)),
+    ("all, coverage 0.2", ("bayes.epipolar_min_coverage=0.2",)),
     ("all + loop ratio 0.9", ("Rtabmap/LoopRatio=0.9",)),
     ("previous: loop ratio, no VhEp", ("Rtabmap/LoopRatio=0.9", "VhEp/Enabled=false")),
     ("new defaults (all)", ()),

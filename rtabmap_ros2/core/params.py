@@ -223,6 +223,12 @@ class BayesParams:
         3.0, "RTAB-Map's VhEp/RansacParam1: largest distance of an inlier from its epipolar line", "px")
     epipolar_confidence: float = _p(
         0.99, "RTAB-Map's VhEp/RansacParam2: RANSAC confidence of the fundamental matrix", "probability")
+    epipolar_min_coverage: float = _p(
+        0.1, "Not in RTAB-Map: the epipolar verification's inliers must also cover this fraction of "
+        "the image (area of their convex hull over that of all the image's keypoints, in the image "
+        "where it is smaller; 0 = off). A poster or sign seen again elsewhere fits a fundamental "
+        "matrix on its own words, in a corner of the image; a revisited place matches across it "
+        "(bench/bench_detect.py --ablation)", "ratio")
 
     def __post_init__(self) -> None:
         _check(0.0 <= self.loop_threshold <= 1.0, "bayes.loop_threshold", self.loop_threshold, "in [0, 1]")
@@ -239,6 +245,8 @@ class BayesParams:
         _check(self.epipolar_max_distance > 0.0, "bayes.epipolar_max_distance", self.epipolar_max_distance, "> 0")
         _check(0.0 < self.epipolar_confidence < 1.0, "bayes.epipolar_confidence", self.epipolar_confidence,
                "in (0, 1)")
+        _check(0.0 <= self.epipolar_min_coverage < 1.0, "bayes.epipolar_min_coverage", self.epipolar_min_coverage,
+               "in [0, 1)")
 
 
 @dataclass(frozen=True)

@@ -170,29 +170,46 @@ def word_pairs(from_sig: Signature, to_sig: Signature) -> tuple[np.ndarray, np.n
     return i_from, i_to
 
 
-def epipolar_inliers(from_sig: Signature, to_sig: Signature, min_pairs: int, max_distance_px: float,
-                     confidence: float) -> int:
+def epipolar_check(from_sig: Signature, to_sig: Signature, min_pairs: int, max_distance_px: float,
+                   confidence: float) -> tuple[int, float]:
     """Inliers of a fundamental matrix fitted by RANSAC to the two images' word pairs (RTAB-Map's
-    EpipolarGeometry::check, hypothesis verification VhEp): 0 when fewer than ``min_pairs`` pairs.
+    EpipolarGeometry::check, hypothesis verification VhEp), and how much of the images they cover.
 
     Args:
         from_sig, to_sig: signatures with 2D keypoints (px) per word.
         min_pairs: pairs needed before fitting (at least 8, the 8-point algorithm's).
         max_distance_px: largest distance of an inlier from its epipolar line.
         confidence: RANSAC's confidence.
+
+    Returns:
+        ``(inliers, coverage)``: 0 inliers when fewer than ``min_pairs`` pairs; ``coverage`` is,
+        in the image where it is smaller, the area of the inliers' convex hull over that of all the
+        image's keypoints (0 with fewer than 3 inliers).
     """
     import cv2
 
     i_from, i_to = word_pairs(from_sig, to_sig)
     if len(i_from) < max(min_pairs, 8):
-        return 0
+        return 0, 0.0
     p_from = np.asarray(from_sig.keypoints, dtype=np.float64)[i_from, :2]
     p_to = np.asarray(to_sig.keypoints, dtype=np.float64)[i_to, :2]
     # OpenCV's FM_RANSAC seeds its own generator on every call: the same pairs, the same decision.
     F, mask = cv2.findFundamentalMat(p_from, p_to, cv2.FM_RANSAC, max_distance_px, confidence)
     if F is None or mask is None:
-        return 0
-    return int(mask.sum())
+        return 0, 0.0
+    inlier = mask.ravel().astype(bool)
+    coverage = min(_hull_area(p_from[inlier]) / max(_hull_area(np.asarray(from_sig.keypoints)[:, :2]), 1.0),
+                   _hull_area(p_to[inlier]) / max(_hull_area(np.asarray(to_sig.keypoints)[:, :2]), 1.0))
+    return int(inlier.sum()), float(coverage)
+
+
+def _hull_area(points: np.ndarray) -> float:
+    """Area (px^2) of the convex hull of 2D points, 0 for fewer than 3."""
+    import cv2
+
+    if len(points) < 3:
+        return 0.0
+    return float(cv2.contourArea(cv2.convexHull(np.asarray(points, dtype=np.float32))))
 
 
 def correspondences(from_sig: Signature, to_sig: Signature) -> tuple[np.ndarray, np.ndarray]:

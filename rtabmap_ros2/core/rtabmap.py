@@ -12,10 +12,14 @@ One call of :meth:`Rtabmap.process` per synchronised frame:
 7. local map optimisation rooted at the newest node (2014 §II-B, C);
 8. pTime; transfer WM -> LTM when pTime > T_time (Alg. 4) or WM is over its cap; this frame's writes go to the
    background writer.
+
+CPython's automatic garbage collection waits while a frame is processed (:func:`_collection_deferred`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import logging
 import os
 import time
@@ -37,7 +41,7 @@ from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import load_backend, optimize, release
 from rtabmap_ros2.core.wm_budget import WorkingMemoryBudget
 from rtabmap_ros2.core.params import Params
-from rtabmap_ros2.core.registration import (assemble_scan_map, epipolar_inliers, refine_neighbor_link, register,
+from rtabmap_ros2.core.registration import (assemble_scan_map, epipolar_check, refine_neighbor_link, register,
                                             words_3d)
 from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.core.signature import Signature
@@ -45,6 +49,30 @@ from rtabmap_ros2.core.sync import NS_PER_S
 from rtabmap_ros2.errors import OptimizationError, RegistrationError, SensorDataError
 
 log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def _collection_deferred():
+    """CPython's automatic garbage collection paused, then resumed: the collections this block's
+    allocations make due run at the next allocation after it, out of the frame's pTime.
+
+    A full (generation 2) collection traverses every tracked object, a WM of 1,000-2,000 locations
+    with their words: 40-135 ms (bench_slam's full_gc_ms) in whatever step allocated at that
+    moment. A frame that took it went over T_time and taught the WM budget a cap for work the
+    frame did not do (seed 0 at T_time 0.1 s: one such frame at session 1's start, WM capped at
+    ~110, no loop closure within session 1, ATE 0.058 m). Reference counting still frees
+    everything that is not in a cycle meanwhile, and the interpreter's own schedule (thresholds,
+    the full collection's 25 % rule) decides what runs once collection is back on. Left alone
+    when the caller has turned collection off.
+    """
+    if not gc.isenabled():
+        yield
+        return
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.enable()
 
 # rtabmap_ros convention: an odometry covariance this large means odometry was lost / reset.
 ODOM_RESET_VARIANCE = 9999.0
@@ -193,6 +221,10 @@ class Rtabmap:
             location_id: id to give the new location (e.g. the image index of ``detect``);
                 default: the next free id. Must be larger than every id already used.
         """
+        with _collection_deferred():
+            return self._process(frame, location_id)
+
+    def _process(self, frame: SensorFrame, location_id: int | None) -> Statistics:
         frame.validate(self.params.sync)
         if location_id is not None and location_id < self.memory.next_location_id:
             raise SensorDataError(
@@ -516,11 +548,13 @@ class Rtabmap:
         # view that raised it (a revisit that ends keeps its place's value for frames); the
         # current image must show the place.
         old = self.memory.signatures[hypothesis.location_id]
-        inliers = epipolar_inliers(sig, old, p.epipolar_min_matches, p.epipolar_max_distance, p.epipolar_confidence)
-        if inliers >= p.epipolar_min_matches:
+        inliers, coverage = epipolar_check(sig, old, p.epipolar_min_matches, p.epipolar_max_distance,
+                                           p.epipolar_confidence)
+        if inliers >= p.epipolar_min_matches and coverage >= p.epipolar_min_coverage:
             return True
         stats.rejected_loop_closure_id = old.id
-        log.debug("hypothesis %d -> %d rejected by epipolar geometry: %d inliers", sig.id, old.id, inliers)
+        log.debug("hypothesis %d -> %d rejected by epipolar geometry: %d inliers covering %.2f",
+                  sig.id, old.id, inliers, coverage)
         return False
 
     def _merge_allows(self, link: Link) -> bool:

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.params import RegistrationParams
-from rtabmap_ros2.core.registration import epipolar_inliers, icp_2d, register, words_3d
+from rtabmap_ros2.core.registration import epipolar_check, icp_2d, register, words_3d
 from rtabmap_ros2.core.sensor import CameraModel
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.errors import RegistrationError
@@ -172,7 +172,7 @@ def test_icp_refinement_and_rejection(intel, rng):
     assert not register(sa, sc, RegistrationParams(planar=True, icp_refine=False)).icp_refined
 
 
-def test_epipolar_inliers_accept_a_consistent_view_and_reject_a_chance_overlap():
+def test_epipolar_check_accepts_a_consistent_view_and_rejects_a_chance_overlap():
     """RTAB-Map's VhEp check: pairs of words found once in both images must fit a fundamental matrix."""
     rng = np.random.default_rng(4)
     points = rng.uniform((0, 0), (640, 480), (120, 2)).astype(np.float32)
@@ -182,12 +182,26 @@ def test_epipolar_inliers_accept_a_consistent_view_and_reject_a_chance_overlap()
     ids = np.arange(1, 121, dtype=np.int64)
     a = Signature(1, 1, 0, ids, points)
     b = Signature(2, 1, 0, ids, moved)
-    assert epipolar_inliers(a, b, 8, 3.0, 0.99) >= 110
-    assert epipolar_inliers(a, b, 8, 3.0, 0.99) == epipolar_inliers(a, b, 8, 3.0, 0.99)  # deterministic
+    inliers, coverage = epipolar_check(a, b, 8, 3.0, 0.99)
+    assert inliers >= 110 and coverage > 0.9
+    assert epipolar_check(a, b, 8, 3.0, 0.99) == (inliers, coverage)  # deterministic
     # Ten words shared by chance, anywhere in the other image: a fundamental matrix fits 7 of any 10.
     chance = Signature(3, 1, 0, np.r_[ids[:10], ids[10:] + 1000], rng.uniform((0, 0), (640, 480), (120, 2)))
-    assert epipolar_inliers(a, chance, 8, 3.0, 0.99) < 8
+    assert epipolar_check(a, chance, 8, 3.0, 0.99)[0] < 8
     # Fewer pairs than needed: 0 without fitting. A word seen twice in an image makes no pair.
-    assert epipolar_inliers(a, Signature(4, 1, 0, np.r_[ids[:7], ids[7:] + 1000], moved), 8, 3.0, 0.99) == 0
+    assert epipolar_check(a, Signature(4, 1, 0, np.r_[ids[:7], ids[7:] + 1000], moved), 8, 3.0, 0.99) == (0, 0.0)
     twice = np.r_[ids[:60], ids[:60]]
-    assert epipolar_inliers(a, Signature(5, 1, 0, twice, moved), 8, 3.0, 0.99) == 0
+    assert epipolar_check(a, Signature(5, 1, 0, twice, moved), 8, 3.0, 0.99) == (0, 0.0)
+
+
+def test_epipolar_coverage_is_small_when_only_one_object_of_the_image_matches():
+    """A poster seen again elsewhere: its words fit a fundamental matrix, but cover a corner only."""
+    rng = np.random.default_rng(5)
+    poster = rng.uniform((40, 40), (160, 130), (40, 2))  # 120 x 90 px of a 640 x 480 image
+    around = rng.uniform((0, 0), (640, 480), (200, 2))
+    ids = np.arange(1, 241, dtype=np.int64)
+    a = Signature(1, 1, 0, ids, np.r_[poster, around])
+    b = Signature(2, 1, 0, np.r_[ids[:40], ids[40:] + 1000], np.r_[poster + (300, 200), around[::-1]])
+    inliers, coverage = epipolar_check(a, b, 8, 3.0, 0.99)
+    assert inliers >= 35
+    assert coverage < 0.05

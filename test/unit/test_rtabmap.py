@@ -240,3 +240,34 @@ def test_the_same_images_give_the_same_detections_whatever_the_load(tmp_path, mo
         return build(*args, **kwargs)
     monkeypatch.setattr(vocabulary_module, "_build_ivf", slow_build)
     assert runs() == fast
+
+
+def test_garbage_collection_runs_after_the_frame_not_in_its_ptime(tmp_path):
+    """A collection due during a frame (thresholds of 1: due at every allocation) runs after it."""
+    import gc
+    import sys
+
+    sequence = make_sequence(6, seed=REVISIT_SEED, segment_length=SEGMENTS)
+    collections = {"in the frame": 0, "outside": 0}
+
+    def on_gc(phase: str, info: dict) -> None:
+        if phase != "start":
+            return
+        caller = sys._getframe(1)
+        while caller is not None and caller.f_code is not Rtabmap._process.__code__:
+            caller = caller.f_back
+        collections["outside" if caller is None else "in the frame"] += 1
+
+    thresholds = gc.get_threshold()
+    with Rtabmap(Params(), tmp_path / "map.db", delete_existing=True) as rtabmap:
+        gc.callbacks.append(on_gc)
+        gc.set_threshold(1, 1, 1)
+        try:
+            for i in range(len(sequence)):
+                rtabmap.process(frame(sequence.image(i), i + 1))
+        finally:
+            gc.set_threshold(*thresholds)
+            gc.callbacks.remove(on_gc)
+        assert gc.isenabled()
+    assert collections["in the frame"] == 0
+    assert collections["outside"] >= len(sequence)
