@@ -152,7 +152,8 @@ class MemoryParams:
         0.8, "SLAM mode: after a frame over T_time, WM is capped at the size it would have taken this part of "
         "T_time at (core/wm_budget.py)", "ratio")
     wm_cap_growth: float = _p(
-        0.3, "SLAM mode: how much that cap rises per frame faster than time_target_ratio x T_time "
+        0.3, "SLAM mode: how much that cap rises per frame faster than time_target_ratio x T_time, up to "
+        "the largest WM a frame went over T_time at "
         "(core/wm_budget.py)", "locations/frame")
     keep_one_node_per_session: bool = _p(
         True, "Never transfer the last WM node of a session, so no map is orphaned (2014 §IV)"

@@ -14,7 +14,11 @@ three, and WM grew without bound (10,000 frames: WM 9,971 of 10,338, pTime p99 9
   the vocabulary, the Bayes filter, the local map optimisation) taken as proportional to WM and
   the rest as fixed (at most halving WM at once; no cap when the fixed part alone is over the
   target: a cold start's first ICP took 0.17 s at 19 locations, and capping WM there starved it
-  for the whole run); the cap rises by ``wm_cap_growth`` locations per frame under that time. The frames
+  for the whole run); the cap rises by ``wm_cap_growth`` locations per frame under that time, never
+  above the largest WM a frame went over T_time at. Without that ceiling WM regrew between two such
+  frames, up to 2,750 locations on the 10,000-frame run, and RSS followed its high-water mark;
+  with the smallest such WM as the ceiling, every slow frame of another kind (a retrieval) lowered
+  it for good, down to WM 660 and few merges by session 15. The frames
   that exceed T_time are rare kinds (a merge, a rejected loop closure: 2-4x an ordinary
   re-solve per node), so WM must not regrow much between two of them: at one location per
   frame (as fast as the robot adds them) WM had grown 50-100 % past the last cap when the next
@@ -45,6 +49,7 @@ class WorkingMemoryBudget:
     def __init__(self, params: MemoryParams) -> None:
         self.params = params
         self._learnt: Optional[float] = None
+        self._ceiling: Optional[int] = None  # the largest WM a frame went over T_time at
 
     def over(self, process_ms: float) -> bool:
         """True when a frame took longer than T_time (never without T_time)."""
@@ -61,8 +66,9 @@ class WorkingMemoryBudget:
         if self.over(process_ms) and fixed_ms < target_ms and scaling_ms > 0:
             fits = max(int(wm_size * (target_ms - fixed_ms) / scaling_ms), wm_size // 2)
             self._learnt = fits if self._learnt is None else min(self._learnt, fits)
+            self._ceiling = wm_size if self._ceiling is None else max(self._ceiling, wm_size)
         elif self._learnt is not None and process_ms < target_ms:
-            self._learnt += self.params.wm_cap_growth
+            self._learnt = min(self._learnt + self.params.wm_cap_growth, self._ceiling)
 
     def cap(self) -> Optional[int]:
         """Most locations WM should hold now (None: no cap)."""

@@ -74,3 +74,16 @@ def test_a_frame_over_t_time_by_its_fixed_part_alone_sets_no_cap():
     wm = budget()
     wm.observe(183.0, 16.0, 19)
     assert wm.cap() is None
+
+
+def test_the_cap_never_regrows_above_the_largest_wm_that_went_over_t_time():
+    wm = budget("memory.time_target_ratio=0.8", "memory.wm_cap_growth=1")
+    wm.observe(110.0, 110.0, 1000)  # cap 727, ceiling 1000
+    for _ in range(500):
+        wm.observe(50.0, 50.0, 900)
+    assert wm.cap() == 1000
+    wm.observe(120.0, 120.0, 900)  # over again at 900: the cap comes down, the ceiling stays
+    assert wm.cap() == 600
+    for _ in range(500):
+        wm.observe(50.0, 50.0, 850)
+    assert wm.cap() == 1000
