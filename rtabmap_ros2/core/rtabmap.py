@@ -57,13 +57,13 @@ def _collection_deferred():
     allocations make due run at the next allocation after it, out of the frame's pTime.
 
     A full (generation 2) collection traverses every tracked object, a WM of 1,000-2,000 locations
-    with their words: 40-135 ms (bench_slam's full_gc_ms) in whatever step allocated at that
-    moment. A frame that took it went over T_time and taught the WM budget a cap for work the
-    frame did not do (seed 0 at T_time 0.1 s: one such frame at session 1's start, WM capped at
-    ~110, no loop closure within session 1, ATE 0.058 m). Reference counting still frees
-    everything that is not in a cycle meanwhile, and the interpreter's own schedule (thresholds,
-    the full collection's 25 % rule) decides what runs once collection is back on. Left alone
-    when the caller has turned collection off.
+    with their words: 40-140 ms (bench_slam's full_gc_ms) in whatever step allocated at that
+    moment. A frame that took one could go over T_time and teach the WM budget a cap for work the
+    frame did not do (likely in a rerun of seed 0 at T_time 0.1 s: its one frame over T_time, at
+    session 1's start, capped WM at ~110, no loop closure within session 1, ATE 0.058 m).
+    Reference counting still frees everything that is not in a cycle meanwhile, and the
+    interpreter's own schedule (thresholds, the full collection's 25 % rule) decides what runs
+    once collection is back on. Left alone when the caller has turned collection off.
     """
     if not gc.isenabled():
         yield
@@ -73,6 +73,7 @@ def _collection_deferred():
         yield
     finally:
         gc.enable()
+
 
 # rtabmap_ros convention: an odometry covariance this large means odometry was lost / reset.
 ODOM_RESET_VARIANCE = 9999.0
