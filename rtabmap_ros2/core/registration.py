@@ -191,15 +191,16 @@ def epipolar_check(from_sig: Signature, to_sig: Signature, min_pairs: int, max_d
     i_from, i_to = word_pairs(from_sig, to_sig)
     if len(i_from) < max(min_pairs, 8):
         return 0, 0.0
-    p_from = np.asarray(from_sig.keypoints, dtype=np.float64)[i_from, :2]
-    p_to = np.asarray(to_sig.keypoints, dtype=np.float64)[i_to, :2]
+    keypoints_from = np.asarray(from_sig.keypoints, dtype=np.float64)[:, :2]
+    keypoints_to = np.asarray(to_sig.keypoints, dtype=np.float64)[:, :2]
+    p_from, p_to = keypoints_from[i_from], keypoints_to[i_to]
     # OpenCV's FM_RANSAC seeds its own generator on every call: the same pairs, the same decision.
     F, mask = cv2.findFundamentalMat(p_from, p_to, cv2.FM_RANSAC, max_distance_px, confidence)
     if F is None or mask is None:
         return 0, 0.0
     inlier = mask.ravel().astype(bool)
-    coverage = min(_hull_area(p_from[inlier]) / max(_hull_area(np.asarray(from_sig.keypoints)[:, :2]), 1.0),
-                   _hull_area(p_to[inlier]) / max(_hull_area(np.asarray(to_sig.keypoints)[:, :2]), 1.0))
+    coverage = min(_hull_area(p_from[inlier]) / max(_hull_area(keypoints_from), 1.0),
+                   _hull_area(p_to[inlier]) / max(_hull_area(keypoints_to), 1.0))
     return int(inlier.sum()), float(coverage)
 
 
