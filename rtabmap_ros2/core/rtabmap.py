@@ -197,9 +197,6 @@ class Rtabmap:
         # solutions ("world"): _map_pose(). _T_world_local: the current solution's frame in it.
         self._map_poses: dict[int, np.ndarray] = {}
         self._T_world_local = transforms.identity()
-        # A map merged this frame: its last optimised poses, moved onto the current one by the
-        # confirming loop closure (the initial guess of the merged local map).
-        self._merged_map_guess: dict[int, np.ndarray] = {}
         self._inactive_links: set[tuple[int, int]] = set()
         # Graph version of the current local map solution (None: no valid solution to extend),
         # and whether WM changed since (transfer, retrieval): see _leaf_update.
@@ -442,7 +439,6 @@ class Rtabmap:
                 self._map_poses.pop(node, None)
             elif pose is not None:
                 self._keep_map_pose(node, pose)
-            self._merged_map_guess.pop(node, None)
         if transferred_to_ltm:
             # Their caches: Bayes neighbourhoods and gtsam factors (else they grow with every node
             # ever in WM).
@@ -609,9 +605,9 @@ class Rtabmap:
             log.info("maps %d and %d merged: %d loop closures up to %.1f m apart agree on their alignment",
                      new_from.map_id, new_to.map_id, agreeing + 1, apart)
             self._merge_candidates = []
-            self._merged_map_guess = self._aligned_old_map(link, old_map)
-            # The old map's kept poses move with it, into the current map's placement.
-            self._map_poses.update({n: self._T_world_local @ T for n, T in self._merged_map_guess.items()})
+            # The old map's kept poses move with it, into the current map's placement: the
+            # merged local map's initial guess (_previous_poses).
+            self._map_poses.update({n: self._T_world_local @ T for n, T in self._aligned_old_map(link, old_map).items()})
             return True
         log.info("loop closure %d -> %d would merge maps %d and %d: held until another one agrees",
                  link.from_id, link.to_id, new_from.map_id, new_to.map_id)
@@ -794,8 +790,7 @@ class Rtabmap:
                 planar_links = [replace(link, T_from_to=transforms.project_planar(link.T_from_to)) for link in links]
                 return chain_poses(root, transforms.project_planar(root_pose), planar_links), links
             return chain_poses(root, root_pose, links), links
-        guess = _warm_start(root, root_pose, memory.graph, component, {**self._merged_map_guess, **self._optimized})
-        self._merged_map_guess = {}
+        guess = _warm_start(root, root_pose, memory.graph, component, self._previous_poses(component))
         if guess is None or not self._fits_inter_session_majority(guess, links):
             guess = consensus_guess(root, root_pose, links)
         result = optimize(guess, links, root, self.params.graph, planar=bool(self._planar))
@@ -814,6 +809,21 @@ class Rtabmap:
                 self._new_loops = []
                 return self._optimize_component(root)
         return result.poses, links
+
+    def _previous_poses(self, nodes: set[int]) -> dict[int, np.ndarray]:
+        """Initial guess of a re-solve over ``nodes``, in the last solution's frame: the last
+        solution, and for nodes not in it their kept poses (_map_pose), a map merged this frame
+        included (_merge_allows moves its kept poses onto the current map).
+
+        A part of the map that comes back into the local map (a node retrieved, a loop closure
+        joining it again through WM) thus starts where it was left. Chained from the last
+        solution through whatever links reached it first, 2,500 nodes of 13 old sessions
+        started tens of metres off, the optimiser settled there, and the next 134 true loop
+        closures were rejected against the kept poses, 30-110 m away (30 sessions, WM 2,700)."""
+        to_local = transforms.inverse(self._T_world_local)
+        poses = {n: to_local @ self._map_poses[n] for n in nodes if n in self._map_poses}
+        poses.update((n, self._optimized[n]) for n in nodes if n in self._optimized)
+        return poses
 
     def _fits_inter_session_majority(self, poses: dict[int, np.ndarray], links: list[Link]) -> bool:
         """True when, for every pair of sessions, most of their loop closures hold in ``poses``."""
@@ -906,7 +916,7 @@ class Rtabmap:
         merged, and WM neither lost nor gained a node. Returns it oriented towards ``newest``.
         """
         memory = self.memory
-        if (solved is None or self._wm_changed or self._new_loops or self._merged_map_guess
+        if (solved is None or self._wm_changed or self._new_loops
                 or memory.graph.version != solved + 1 or newest in self._optimized):
             return None
         links = memory.graph.links_of(newest)

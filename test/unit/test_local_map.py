@@ -322,3 +322,40 @@ def test_a_map_merge_waits_for_a_second_agreeing_loop_closure_far_enough_away(tm
     finally:
         rtabmap.close()
 
+
+
+
+def test_a_part_of_the_map_coming_back_into_the_local_map_starts_at_its_kept_poses(tmp_path):
+    """Session 0 left the local map (its nodes have kept poses); a loop closure from session 1
+    (33 -> 3) joins it again. Nodes 13-17 are in LTM, so in WM its two parts are joined only by
+    loop closures: a true one (10 -> 20) and a false one the robust kernel had rejected (3 -> 25,
+    1 m instead of 11 m). Chained from the last solution through the first link that reaches
+    them, nodes 18-30 started 10 m off and the robust kernel then kept the false link and dropped
+    the true one. The re-solve starts from the kept poses and gives session 0 its geometry back
+    (30 sessions, WM 2,700: 2,500 nodes started tens of metres off, the solution settled there and
+    134 true loop closures were then rejected)."""
+    rtabmap = _two_corridor_sessions(tmp_path)
+    try:
+        rtabmap.params = rtabmap.params.with_value("graph.robust", True)
+        memory = rtabmap.memory
+        truth = {1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)}
+        truth.update({31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(30)})
+        memory.add_loop_closure(Link(10, 20, LinkType.LOOP_INTRA, transforms.relative(truth[10], truth[20]), ODOM_INFO))
+        memory.add_loop_closure(Link(3, 25, LinkType.LOOP_INTRA, transforms.from_xy_yaw(1.0, 0.0, 0.0), ODOM_INFO))
+        for node in range(13, 18):  # in LTM
+            del memory.signatures[node]
+            memory.wm.pop(node, None)
+        memory.map_id = 1
+        # The world frame of the kept poses is not the local map's: the solutions' frames move.
+        rtabmap._T_world_local = transforms.from_xy_yaw(3.0, -2.0, 0.7)
+        to_local = transforms.inverse(rtabmap._T_world_local)
+        rtabmap._map_poses = {n: truth[n] for n in range(1, 31) if n in memory.signatures}
+        rtabmap._optimized = {n: to_local @ truth[n] for n in range(31, 56)}
+        memory.add_loop_closure(_inter_link(33, 3))
+        poses, _ = rtabmap._optimize_component(55)
+        assert set(range(18, 31)) <= set(poses)
+        for a, b in [(1, 30), (3, 25), (10, 20), (25, 55), (1, 55)]:
+            error = transforms.relative(transforms.relative(poses[a], poses[b]), transforms.relative(truth[a], truth[b]))
+            assert np.linalg.norm(error[:3, 3]) < 0.05, (a, b, error[:3, 3])
+    finally:
+        rtabmap.close()
