@@ -24,20 +24,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from collections import deque
 from pathlib import Path
 
 import numpy as np
 
+from process_memory import rss_mb
 from rtabmap_ros2.core.vocabulary import _build_ivf, _ivf_lists, _remove_ids
-
-
-def rss_mb() -> float:
-    """Resident set size of this process (MB)."""
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from process_memory import rss_mb
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.params import Params, default_config_path
 from rtabmap_ros2.core.rtabmap import TIMING_KEYS, Rtabmap
@@ -169,12 +170,6 @@ def odometry_ate(gmap, gt: Trajectory) -> dict:
         sq += float(np.sum(r.errors_m ** 2))
         n += r.matched
     return {"rmse_m": float(np.sqrt(sq / max(n, 1))), "per_session_m": per}
-
-
-def rss_mb() -> float:
-    """Resident set size of this process (MB)."""
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
 def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_dir: Path, label: str) -> dict:

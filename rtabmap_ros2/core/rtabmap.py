@@ -607,7 +607,8 @@ class Rtabmap:
             self._merge_candidates = []
             # The old map's kept poses move with it, into the current map's placement: the
             # merged local map's initial guess (_previous_poses).
-            self._map_poses.update({n: self._T_world_local @ T for n, T in self._aligned_old_map(link, old_map).items()})
+            aligned = self._aligned_old_map(link, old_map)
+            self._map_poses.update({n: self._T_world_local @ T for n, T in aligned.items()})
             return True
         log.info("loop closure %d -> %d would merge maps %d and %d: held until another one agrees",
                  link.from_id, link.to_id, new_from.map_id, new_to.map_id)
@@ -812,8 +813,9 @@ class Rtabmap:
 
     def _previous_poses(self, nodes: set[int]) -> dict[int, np.ndarray]:
         """Initial guess of a re-solve over ``nodes``, in the last solution's frame: the last
-        solution, and for nodes not in it their kept poses (_map_pose), a map merged this frame
-        included (_merge_allows moves its kept poses onto the current map).
+        solution, and for nodes not in it their kept poses (_map_poses, brought from the world
+        frame), a map merged this frame included (_merge_allows moves its kept poses onto the
+        current map).
 
         A part of the map that comes back into the local map (a node retrieved, a loop closure
         joining it again through WM) thus starts where it was left. Chained from the last

@@ -323,8 +323,6 @@ def test_a_map_merge_waits_for_a_second_agreeing_loop_closure_far_enough_away(tm
         rtabmap.close()
 
 
-
-
 def test_a_part_of_the_map_coming_back_into_the_local_map_starts_at_its_kept_poses(tmp_path):
     """Session 0 left the local map (its nodes have kept poses); a loop closure from session 1
     (33 -> 3) joins it again. Nodes 13-17 are in LTM, so in WM its two parts are joined only by
