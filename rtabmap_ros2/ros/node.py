@@ -266,6 +266,9 @@ class RtabmapNode(Node):
         self._last_stamp: dict[str, int] = {}
         self._camera = None
         self._needs_camera = p.subscribe_rgb or p.subscribe_depth
+        # The newest set completed before the first camera_info: callbacks of one instant run in any
+        # order, so the driver's first camera_info can come just after its images. Held, not dropped.
+        self._waiting_for_camera: tuple[SyncedSet, float] | None = None
 
         # Worker: a bounded queue of frames (oldest dropped when full) and the services' commands.
         self._frames: deque[tuple[SensorFrame, float]] = deque()
@@ -386,6 +389,9 @@ class RtabmapNode(Node):
             return
         if stream == "camera_info":
             self._camera = value
+            if self._waiting_for_camera is not None:
+                held, self._waiting_for_camera = self._waiting_for_camera, None
+                self._submit(*held)
             return
         last = self._last_stamp.get(stream)
         if last is not None and stamp_ns <= last and last - stamp_ns < self._reset_jump_ns:
@@ -408,8 +414,11 @@ class RtabmapNode(Node):
             frame.T_odom_base, frame.odom_covariance = values["odom"]
         if self._needs_camera:
             if self._camera is None:
-                self._bad(self._topics.get("camera_info", "rgb/camera_info"), "no_camera_info",
-                          "no camera_info received yet: image frames are dropped until one arrives")
+                if self._waiting_for_camera is not None:   # a newer set replaces it: that one is lost
+                    self._bad(self._topics.get("camera_info", "rgb/camera_info"), "no_camera_info",
+                              "no camera_info received yet: image frames are dropped until one arrives "
+                              "(the newest is held for it)")
+                self._waiting_for_camera = (synced, arrival)
                 return
             frame.camera = self._camera
         try:

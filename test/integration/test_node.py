@@ -264,6 +264,21 @@ def test_frames_completed_together_are_all_processed(harness, frames):
     assert not node.messages_lost   # reliable, in one process: nothing lost in transport
 
 
+def test_first_frame_waits_for_a_late_camera_info(harness, frames):
+    """Callbacks of one instant run in any order: a driver's first camera_info may come just after
+    its images. The set it completes is held for it, not dropped; only a set replaced while waiting is."""
+    node, t = harness.node, harness.tester
+    t.publish_frame(frames[0], skip=("camera_info",))
+    assert wait_for(lambda: node._sync.emitted == 1)
+    t.publish_frame(frames[1], skip=("camera_info",))   # replaces the held set: frame 0 is lost
+    assert wait_for(lambda: node._sync.emitted == 2)
+    assert t.count("info") == 0 and node.bad_messages == {("/rgb/camera_info", "no_camera_info"): 1}
+    t.pubs["camera_info"].publish(conv.camera_info_to_msg(frames[1].camera, frames[1].stamp_ns, "camera_optical"))
+    assert wait_for(lambda: t.count("info") == 1)
+    assert t.received["info"][0].header.stamp == conv.header(frames[1].stamp_ns, "map").stamp
+    assert int(harness.feed(frames[2])["location_id"]) > 0
+
+
 def test_map_is_latched_for_late_subscribers(harness, frames, context):
     for f in frames[:3]:
         harness.feed(f)
