@@ -303,6 +303,16 @@ class Memory:
                         found.append(other)
         return found
 
+    def scans(self, ids: Iterable[int]) -> dict:
+        """Laser scans of locations ``ids`` that have one: from WM, else read from LTM (not retrieved)."""
+        ids = list(ids)
+        found = {n: self.signatures[n].scan for n in ids
+                 if n in self.signatures and self.signatures[n].scan is not None}
+        in_ltm = [n for n in ids if n not in self.signatures]
+        if in_ltm:
+            found.update(self.db.load_scans(in_ltm))
+        return found
+
     def retrieve(self, ids: list[int]) -> list[int]:
         """Bring the LTM locations ``ids`` back to WM (Alg. 3); returns the ids retrieved."""
         ids = [n for n in dict.fromkeys(ids) if n not in self.signatures and n in self.graph]

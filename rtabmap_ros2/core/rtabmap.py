@@ -34,14 +34,14 @@ from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
-from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
+from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid, scan_conflict
 from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, chain_poses, consensus_guess, default_information,
                                      loop_type)
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import load_backend, optimize, release
 from rtabmap_ros2.core.wm_budget import WorkingMemoryBudget
 from rtabmap_ros2.core.params import Params
-from rtabmap_ros2.core.registration import (assemble_scan_map, epipolar_check, refine_neighbor_link, register,
+from rtabmap_ros2.core.registration import (assemble_scan_map, epipolar_check, icp_2d, refine_neighbor_link, register,
                                             words_3d)
 from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.core.signature import Signature
@@ -89,6 +89,12 @@ POSE_EPSILON_M = 1e-3
 POSE_EPSILON_RAD = 1e-3
 # Verified loop closures held while waiting for a second one to merge two maps (newest kept).
 MAX_MERGE_CANDIDATES = 50
+# Merge check (_scan_conflict): the scans of both maps within this radius (m) of the agreeing loop
+# closures, at most this many scans per map, this many beams per scan, on cells of this size (m).
+MERGE_CHECK_RADIUS = 10.0
+MERGE_CHECK_SCANS = 40
+MERGE_CHECK_BEAMS = 180
+MERGE_CHECK_CELL = 0.2
 # Steps whose time grows with WM (vocabulary, Bayes filter, local map): see WorkingMemoryBudget.
 SCALING_STEPS = ("quantization", "bayes", "optimization")
 TIMING_KEYS = ("features", "quantization", "rehearsal", "bayes", "verification", "retrieval",
@@ -564,10 +570,15 @@ class Rtabmap:
         (look-alike posters, symmetric corridors) passes RANSAC and ICP: measured on the simulated
         5 sessions, the first inter-session loop closure of session 2 was 43 m off and then made
         the true ones look wrong. So the merge waits (the 2014 paper's §IV asks for this kind of
-        safety for multi-session): it happens when a second loop closure to the same old map, from
-        places at least ``graph.merge_min_separation`` apart on both maps, agrees with a held one
-        on the alignment of the two maps (both sides from their optimised poses: _session_poses,
-        _old_map_poses). Only the confirming link is
+        safety for multi-session): it happens when ``graph.merge_min_loop_closures`` loop closures
+        to the same old map (this one and held ones), from places at least
+        ``graph.merge_min_separation`` apart on both maps, agree on the alignment of the two maps
+        (both sides from their optimised poses: _session_poses, _old_map_poses), and the two maps'
+        laser scans around them do not contradict that alignment (_scan_conflict, at most
+        ``graph.merge_max_conflict``). Look-alikes repeat: with a small WM (seeds 0 and 5, WM 300)
+        the only candidates of a session were look-alikes, and pairs of them shifted alike along
+        parallel corridors agreed 18-43 m off; the scans refused the 18 and 21 m ones, the third
+        loop closure the 43 m one. Only the confirming link is
         added, so the merge itself bends nothing: adding the held ones with it strained links of
         the old map by ~150 std devs and RGBD/OptimizeMaxError undid the merge; the loop closures
         that follow are added one per frame and checked as usual.
@@ -585,7 +596,8 @@ class Rtabmap:
                                   if c.from_id in signatures and c.to_id in signatures]
         new_from, new_to = signatures[link.from_id], signatures[link.to_id]
         new_pose = self._new_node_pose(link.from_id)
-        agreeing, apart = 0, 0.0
+        agreeing: list[Link] = []
+        apart = 0.0
         for held in self._merge_candidates:
             if held.to_id not in old_map:
                 continue
@@ -598,22 +610,74 @@ class Rtabmap:
                        ((held, session_poses[0], old_poses[0]), (link, session_poses[1], old_poses[1]))]
             difference = transforms.inverse(implied[0]) @ implied[1]
             if agree(difference):
-                agreeing += 1
+                agreeing.append(held)
                 apart = max(apart, min(np.linalg.norm(session_poses[0][:3, 3] - session_poses[1][:3, 3]),
                                        np.linalg.norm(old_poses[0][:3, 3] - old_poses[1][:3, 3])))
-        if apart >= separation:
-            log.info("maps %d and %d merged: %d loop closures up to %.1f m apart agree on their alignment",
-                     new_from.map_id, new_to.map_id, agreeing + 1, apart)
+        if apart >= separation and len(agreeing) + 1 >= self.params.graph.merge_min_loop_closures:
+            # The old map's kept poses, moved into the current map's placement by this link.
+            aligned = {n: self._T_world_local @ T for n, T in self._aligned_old_map(link, old_map).items()}
+            conflict = self._scan_conflict([link] + agreeing, aligned, new_pose)
+            if conflict > self.params.graph.merge_max_conflict:
+                log.info("loop closure %d -> %d and %d held would merge maps %d and %d, but on %.0f %% of the "
+                         "cells both saw, one map's laser hits a wall where the other's saw free space (> %.0f "
+                         "%%): not merged, the held ones dropped", link.from_id, link.to_id, len(agreeing),
+                         new_from.map_id, new_to.map_id, 100 * conflict, 100 * self.params.graph.merge_max_conflict)
+                self._merge_candidates = [c for c in self._merge_candidates if all(c is not a for a in agreeing)]
+                return False
+            log.info("maps %d and %d merged: %d loop closures up to %.1f m apart agree on their alignment, "
+                     "their scans conflict on %.0f %% of the cells both saw", new_from.map_id, new_to.map_id,
+                     len(agreeing) + 1, apart, 100 * conflict)
             self._merge_candidates = []
-            # The old map's kept poses move with it, into the current map's placement: the
-            # merged local map's initial guess (_previous_poses).
-            aligned = self._aligned_old_map(link, old_map)
-            self._map_poses.update({n: self._T_world_local @ T for n, T in aligned.items()})
+            # They become the merged local map's initial guess (_previous_poses).
+            self._map_poses.update(aligned)
             return True
         log.info("loop closure %d -> %d would merge maps %d and %d: held until another one agrees",
                  link.from_id, link.to_id, new_from.map_id, new_to.map_id)
         self._merge_candidates = (self._merge_candidates + [link])[-MAX_MERGE_CANDIDATES:]
         return False
+
+    def _scan_conflict(self, links: list[Link], aligned: dict[int, np.ndarray],
+                       new_pose: Optional[np.ndarray]) -> float:
+        """How much the two maps' laser scans contradict each other (grid.scan_conflict) around the
+        loop closures ``links`` when the old map sits at ``aligned`` (world frame): the current
+        session's nodes and those of the session the first link reaches, within
+        MERGE_CHECK_RADIUS of the links' current-session ends, at most MERGE_CHECK_SCANS of each.
+        The alignment comes from one loop closure, so its error grows away from it: when the
+        conflict is over graph.merge_max_conflict, the old map's scans are aligned on the current
+        ones by ICP and the conflict taken again (the lower counts). 0.0 when there is nothing
+        to compare (no scans)."""
+        memory = self.memory
+        current_map = memory.map_ids.get(links[0].from_id)
+        current = {n: self._map_pose(n) for n, m in memory.map_ids.items() if m == current_map}
+        current = {n: T for n, T in current.items() if T is not None}
+        if new_pose is not None:
+            current[links[0].from_id] = self._T_world_local @ new_pose
+        centres = np.array([current[l.from_id][:2, 3] for l in links if l.from_id in current]).reshape(-1, 2)
+        if not len(centres):
+            return 0.0
+
+        def near(poses: dict[int, np.ndarray]) -> list[int]:
+            ids = sorted(n for n, T in poses.items()
+                         if np.min(np.linalg.norm(centres - T[:2, 3], axis=1)) <= MERGE_CHECK_RADIUS)
+            return ids[::max(1, -(-len(ids) // MERGE_CHECK_SCANS))]
+
+        # Only the session the new loop closure reaches: each session's kept poses are its own
+        # solution, placed against the others by one loop closure each (their seams would count).
+        old_map = memory.map_ids.get(links[0].to_id)
+        near_current = near(current)
+        near_old = near({n: T for n, T in aligned.items() if memory.map_ids.get(n) == old_map})
+        scans = memory.scans(near_current + near_old)
+        ours = [(current[n], scans[n]) for n in near_current if n in scans]
+        theirs = [(aligned[n], scans[n]) for n in near_old if n in scans]
+        if not ours or not theirs:
+            return 0.0
+        check = (MERGE_CHECK_CELL, MERGE_CHECK_RADIUS, MERGE_CHECK_BEAMS)
+        conflict = scan_conflict(ours, theirs, *check)[0]
+        if conflict <= self.params.graph.merge_max_conflict:
+            return conflict
+        T, _, _ = icp_2d(assemble_scan_map(theirs, MERGE_CHECK_CELL), assemble_scan_map(ours, MERGE_CHECK_CELL),
+                         transforms.identity(), max_correspondence_distance=2 * MERGE_CHECK_CELL)
+        return min(conflict, scan_conflict(ours, [(T @ pose, scan) for pose, scan in theirs], *check)[0])
 
     def _fits_kept_poses(self, link: Link, separation: float) -> bool:
         """A loop closure to an older session already joined to the current one: False when it puts

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.grid import (FREE, OCCUPIED, UNKNOWN, assemble_cloud, build_grid, voxel_filter,
-                                    write_ply)
+from rtabmap_ros2.core.grid import (FREE, OCCUPIED, UNKNOWN, assemble_cloud, build_grid, scan_conflict,
+                                    voxel_filter, write_ply)
 from rtabmap_ros2.core.params import GridParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 
@@ -105,3 +105,21 @@ def test_assemble_cloud_and_ply(tmp_path):
     assert n == len(pts) and len(body) == n * 15
     rec = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
     assert np.allclose(rec["z"], 2.0) and np.all(rec["r"] == 200)
+
+
+def test_scan_conflict_tells_a_wrong_alignment_from_the_right_one(rng):
+    """Two sessions' scans of the square room: placed right (up to 3 cm / 0.3 deg of pose error)
+    they agree; moved 0.5 or 1 m, the walls of one fall in the other's free space."""
+    a = [(transforms.from_xy_yaw(x, y, 0), room_scan(x, y)) for x, y in ((-1, -1), (0, 0), (1, 0.5))]
+    places = ((-0.5, 0.5), (0.5, -0.5), (1.0, 1.0))
+
+    def b(shift: float):
+        return [(transforms.from_xy_yaw(x + shift + rng.normal(0, 0.03), y + rng.normal(0, 0.03),
+                                        rng.normal(0, 0.005)), room_scan(x, y)) for x, y in places]
+
+    right, cells = scan_conflict(a, b(0.0), 0.2, 10.0, 180)
+    assert cells > 200 and right < 0.02
+    for shift in (0.5, 1.0):
+        assert scan_conflict(a, b(shift), 0.2, 10.0, 180)[0] > 0.2
+    # Nothing observed in common: no evidence either way.
+    assert scan_conflict(a, [(transforms.from_xy_yaw(100, 0, 0), room_scan(0, 0))], 0.2, 10.0, 180) == (0.0, 0)

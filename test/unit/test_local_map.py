@@ -272,6 +272,7 @@ def test_merge_agreement_takes_the_session_side_from_the_local_map_not_the_drift
     scans, does not): two true loop closures 6 m apart imply old-map alignments 0.6 m apart by
     odometry, over the agreement tolerance, and agree on the local map's poses."""
     rtabmap = _two_corridor_sessions(tmp_path)
+    rtabmap.params = rtabmap.params.with_value("graph.merge_min_loop_closures", 2)
     try:
         for k in range(30):
             rtabmap.memory.signatures[31 + k].T_odom_base = transforms.from_xy_yaw(0.55 * k, 0.0, 0.0)
@@ -301,24 +302,34 @@ def test_a_loop_closure_to_a_joined_session_far_from_its_kept_pose_is_rejected(t
         rtabmap.close()
 
 
-def test_a_map_merge_waits_for_a_second_agreeing_loop_closure_far_enough_away(tmp_path):
+def test_a_map_merge_waits_for_agreeing_loop_closures_far_enough_apart(tmp_path):
     rtabmap = _two_corridor_sessions(tmp_path)
     try:
         # A look-alike place 15 m away: held, nothing to judge it against.
         assert rtabmap._merge_allows(_inter_link(35, 5, error_xy=(15.0, 0.0))) is False
         # A true one: held too (it disagrees with the false one).
-        first_true = _inter_link(37, 7)
-        assert rtabmap._merge_allows(first_true) is False
-        # A true one only 1.5 m further: not independent evidence yet.
-        near_true = _inter_link(40, 10)
-        assert rtabmap._merge_allows(near_true) is False
-        # A true one 6 m further on both maps agrees with the first true one: the merge happens.
-        second_true = _inter_link(49, 19)
-        assert rtabmap._merge_allows(second_true) is True
-        rtabmap.memory.add_loop_closure(second_true)
+        assert rtabmap._merge_allows(_inter_link(37, 7)) is False
+        # True ones 1.5 and 2.5 m further agree with it, but are not independent evidence yet.
+        assert rtabmap._merge_allows(_inter_link(40, 10)) is False
+        assert rtabmap._merge_allows(_inter_link(42, 12)) is False
+        # A true one 6 m further on both maps agrees with them: the merge happens.
+        confirming = _inter_link(49, 19)
+        assert rtabmap._merge_allows(confirming) is True
+        rtabmap.memory.add_loop_closure(confirming)
         # Once connected, a loop closure is added at once (the optimiser judges it).
-        later = _inter_link(52, 22)
-        assert rtabmap._merge_allows(later) is True
+        assert rtabmap._merge_allows(_inter_link(52, 22)) is True
+    finally:
+        rtabmap.close()
+
+
+def test_two_agreeing_loop_closures_do_not_merge_maps(tmp_path):
+    """Look-alikes shifted alike along parallel corridors agree in pairs: a merge takes
+    graph.merge_min_loop_closures (3) agreeing loop closures."""
+    rtabmap = _two_corridor_sessions(tmp_path)
+    try:
+        assert rtabmap._merge_allows(_inter_link(37, 7)) is False
+        assert rtabmap._merge_allows(_inter_link(49, 19)) is False   # 6 m apart, agreeing: two only
+        assert rtabmap._merge_allows(_inter_link(52, 22)) is True
     finally:
         rtabmap.close()
 
