@@ -334,6 +334,45 @@ def test_two_agreeing_loop_closures_do_not_merge_maps(tmp_path):
         rtabmap.close()
 
 
+def _corridor_scan(x: float, y: float, n: int = 481) -> LaserScan:
+    """A 360-degree scan from (x, y), yaw 0, in the corridor both sessions drive (x -2..16, y -1..1.5,
+    door frames at x = 3, 8 and 14.5)."""
+    walls = [(-2, -1, 16, -1), (-2, 1.5, 16, 1.5), (-2, -1, -2, 1.5), (16, -1, 16, 1.5)]
+    for door in (3.0, 8.0, 14.5):
+        walls += [(door, -1, door, -0.4), (door, 0.9, door, 1.5)]
+    walls = np.array(walls, float)
+    angles = -np.pi + 2 * np.pi * np.arange(n) / n
+    d = np.stack([np.cos(angles), np.sin(angles)], axis=1)[:, None, :]
+    p, e = walls[None, :, :2] - np.array([x, y]), (walls[:, 2:] - walls[:, :2])[None]
+    cross = d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (p[..., 0] * e[..., 1] - p[..., 1] * e[..., 0]) / cross
+        u = (p[..., 0] * d[..., 1] - p[..., 1] * d[..., 0]) / cross
+    t = np.where((t > 0) & (u >= 0) & (u <= 1), t, np.inf).min(axis=1)
+    return LaserScan(np.where(t < 30, t, np.inf), -np.pi, 2 * np.pi / n, 0.1, 30.0)
+
+
+def test_a_map_merge_the_scans_contradict_is_refused(tmp_path):
+    """Three look-alike loop closures shifted alike (15 m along the corridor) agree with each other;
+    the sessions' scans do not: one session's end wall and door frames fall in the other's free
+    corridor. Refused, and the held ones dropped; three true ones then merge the maps."""
+    rtabmap = _two_corridor_sessions(tmp_path)
+    try:
+        memory = rtabmap.memory
+        for k in range(30):
+            memory.signatures[1 + k].scan = _corridor_scan(0.5 * k, 0.0)
+            memory.signatures[31 + k].scan = _corridor_scan(0.5 * k, 0.5)
+        rtabmap._map_poses = {1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)}  # session 0
+        rtabmap._optimized = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(25)}
+        look_alikes = [_inter_link(a, b, error_xy=(15.0, 0.0)) for a, b in ((35, 5), (41, 11), (47, 17))]
+        assert [rtabmap._merge_allows(link) for link in look_alikes] == [False, False, False]
+        assert rtabmap._merge_candidates == []
+        true_ones = [_inter_link(a, b) for a, b in ((37, 7), (43, 13), (49, 19))]
+        assert [rtabmap._merge_allows(link) for link in true_ones] == [False, False, True]
+    finally:
+        rtabmap.close()
+
+
 def test_a_part_of_the_map_coming_back_into_the_local_map_starts_at_its_kept_poses(tmp_path):
     """Session 0 left the local map (its nodes have kept poses); a loop closure from session 1
     (33 -> 3) joins it again. Nodes 13-17 are in LTM, so in WM its two parts are joined only by
