@@ -122,7 +122,7 @@ class GridAccumulator:
         # Misses: cells crossed by each beam before its end (ray casting, SAMPLES_PER_CELL per cell),
         # in chunks of about MAX_SAMPLES_PER_CHUNK samples (bounded memory).
         vec = end_pts - origin_pts
-        n_samples = np.ceil(np.linalg.norm(vec, axis=1) / res * SAMPLES_PER_CELL).astype(np.int64)
+        n_samples = _samples_per_beam(vec, res)
         chunk_of = np.cumsum(n_samples) // MAX_SAMPLES_PER_CHUNK
         bounds = np.flatnonzero(np.diff(chunk_of)) + 1
         for lo_b, hi_b in zip(np.r_[0, bounds], np.r_[bounds, len(vec)]):
@@ -238,10 +238,7 @@ def _hit_and_crossed_cells(scans: list[tuple[np.ndarray, LaserScan]], cell: floa
             continue
         hits.append(_cell_keys(ends[is_hit], cell))
         vec = ends - origins
-        n = np.maximum(np.ceil(np.linalg.norm(vec, axis=1) / cell * SAMPLES_PER_CELL).astype(np.int64), 1)
-        beam = np.repeat(np.arange(len(vec)), n)
-        frac = (np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)) / np.repeat(n, n)
-        crossed.append(_cell_keys(origins[beam] + vec[beam] * frac[:, None], cell))
+        crossed.append(_cell_keys(_beam_samples(origins, vec, np.maximum(_samples_per_beam(vec, cell), 1))[1], cell))
     return np.unique(np.concatenate(hits)), np.unique(np.concatenate(crossed))
 
 
@@ -261,11 +258,7 @@ def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, en
     total = int(n_samples.sum())
     if not total:
         return
-    beam = np.repeat(np.arange(len(vec)), n_samples)
-    start = np.cumsum(n_samples) - n_samples
-    step = np.arange(total) - np.repeat(start, n_samples)
-    frac = step / np.repeat(np.maximum(n_samples, 1), n_samples)
-    samples = origins[beam] + vec[beam] * frac[:, None]
+    beam, samples = _beam_samples(origins, vec, n_samples)
     cells = flat(samples)
     # One miss per (beam, cell) and never on the beam's own end cell. A segment crosses each
     # cell in one run of consecutive samples, so dropping repeats of the previous sample
@@ -274,6 +267,20 @@ def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, en
     first[1:] = (cells[1:] != cells[:-1]) | (beam[1:] != beam[:-1])
     keep = first & (cells != end_cells[beam])
     miss_count += np.bincount(cells[keep], minlength=miss_count.size).astype(np.int32)
+
+
+def _samples_per_beam(vec: np.ndarray, cell: float) -> np.ndarray:
+    """(N,) int64 samples along each beam (N,2 vectors, m) for SAMPLES_PER_CELL per cell of ``cell`` m."""
+    return np.ceil(np.linalg.norm(vec, axis=1) / cell * SAMPLES_PER_CELL).astype(np.int64)
+
+
+def _beam_samples(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``n_samples[i]`` evenly spaced points along beam i, from its origin to just before its end,
+    all beams at once: (beam index of each sample, (total,2) sample points)."""
+    beam = np.repeat(np.arange(len(vec)), n_samples)
+    step = np.arange(int(n_samples.sum())) - np.repeat(np.cumsum(n_samples) - n_samples, n_samples)
+    frac = step / np.repeat(np.maximum(n_samples, 1), n_samples)
+    return beam, origins[beam] + vec[beam] * frac[:, None]
 
 
 def _beams_map(T_map_base: np.ndarray, scan: LaserScan, range_max: float):

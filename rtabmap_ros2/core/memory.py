@@ -24,6 +24,7 @@ from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.database import BackgroundWriter, Database, SensorBlobs, WriteBatch
 from rtabmap_ros2.core.graph import Graph, Link, LinkType, loop_type
 from rtabmap_ros2.core.params import Params
+from rtabmap_ros2.core.sensor import LaserScan
 from rtabmap_ros2.core.signature import Signature, similarity
 from rtabmap_ros2.core.vocabulary import Vocabulary
 
@@ -303,7 +304,7 @@ class Memory:
                         found.append(other)
         return found
 
-    def scans(self, ids: Iterable[int]) -> dict:
+    def scans(self, ids: Iterable[int]) -> dict[int, LaserScan]:
         """Laser scans of locations ``ids`` that have one: from WM, else read from LTM (not retrieved)."""
         ids = list(ids)
         found = {n: self.signatures[n].scan for n in ids
