@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from process_memory import rss_mb
+from process_memory import memory_breakdown_mb, rss_mb
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.params import Params, default_config_path
 from rtabmap_ros2.core.rtabmap import TIMING_KEYS, Rtabmap
@@ -177,7 +177,7 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
     stats_rows: list[dict] = []
     loops: list[dict] = []
     node_stamp: dict[int, int] = {}
-    memory_samples: list[dict] = []  # every RSS_EVERY frames: frame, WM size, RSS
+    memory_samples: list[dict] = []  # every RSS_EVERY frames: frame, WM size, RSS and where it is
     retrieved_per_session: dict[int, int] = {}
 
     cpu_marks = [time.thread_time()]  # main thread CPU at each frame's end: CPU per frame
@@ -203,7 +203,8 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
         row = s.to_dict()
         stats_rows.append({k: row[k] for k in STATS_KEPT})
         if len(stats_rows) % RSS_EVERY == 0:
-            memory_samples.append({"frame": len(stats_rows), "wm_size": s.wm_size, "rss_mb": round(rss_mb(), 1)})
+            memory_samples.append({"frame": len(stats_rows), "wm_size": s.wm_size, "rss_mb": round(rss_mb(), 1),
+                                   **memory_breakdown_mb()})
         if s.location_id:
             node_stamp[s.location_id] = s.stamp_ns
         if s.loop_closure_id:

@@ -172,6 +172,88 @@ def test_remove_words_drops_their_references(vocab, rng):
     assert vocab.references(int(ids[0])) == {} and vocab.references(int(ids[5])) == {3: 1}
 
 
+def test_inverted_index_matches_a_plain_model_through_word_churn(vocab, rng):
+    """The index keeps a word that occurs once in one location outside any dict (beside its row);
+    through adds, removals, row moves and words outside the vocabulary it answers as a plain
+    word -> {location: occurrences} map does."""
+    import math
+
+    model: dict[int, dict[int, int]] = {}
+    signatures: dict[int, np.ndarray] = {}
+    next_id, next_location = 1, 1
+
+    def add_words(n):
+        nonlocal next_id
+        ids = np.arange(next_id, next_id + n)
+        next_id += n
+        vocab.add_words(ids, random_binary(rng, n))
+
+    def model_add(location, words):
+        for w in words.tolist():
+            model.setdefault(w, {})[location] = model.get(w, {}).get(location, 0) + 1
+
+    def model_remove(location, words):
+        for w in set(words.tolist()):
+            model.get(w, {}).pop(location, None)
+            if w in model and not model[w]:
+                del model[w]
+
+    add_words(400)
+    for step in range(300):
+        action = rng.random()
+        if action < 0.5 or not signatures:
+            live = vocab.word_ids()
+            # Mostly words of the vocabulary, repeats and a word outside it now and then.
+            words = rng.choice(live, rng.integers(5, 30))
+            if rng.random() < 0.2:
+                words = np.append(words, next_id + 10_000 + step)
+            signatures[next_location] = words
+            vocab.add_references(next_location, words)
+            model_add(next_location, words)
+            next_location += 1
+        elif action < 0.8:
+            location = int(rng.choice(list(signatures)))
+            words = signatures.pop(location)
+            orphans = vocab.remove_references(location, words)
+            before = {w for w in set(words.tolist()) if w in model}
+            model_remove(location, words)
+            assert orphans == sorted(w for w in before if w not in model)
+            in_vocabulary = [w for w in orphans if vocab.contains(w)]
+            if in_vocabulary and rng.random() < 0.7:
+                vocab.remove_words(np.array(in_vocabulary))  # rows move: the last fills the hole
+        else:
+            live = vocab.word_ids()
+            gone = rng.choice(live, min(len(live), 10), replace=False)
+            vocab.remove_words(gone)
+            for w in gone.tolist():
+                model.pop(w, None)
+            add_words(int(rng.integers(5, 20)))
+        if step % 25 == 24:
+            for w in range(1, next_id + 10_400):
+                assert vocab.references(w) == model.get(w, {}), w
+            query_words = rng.choice(np.array(sorted(model)), 40)
+            ids, counts = np.unique(query_words, return_counts=True)
+            query = dict(zip(ids.tolist(), counts.tolist()))
+            expected = {}
+            for w, c in query.items():
+                for location, n in model.get(w, {}).items():
+                    expected[location] = expected.get(location, 0) + min(c, n)
+            assert vocab.scores(query) == expected
+            candidates = set(list(signatures)[::2])
+            assert vocab.scores(query, candidates) == {k: v for k, v in expected.items() if k in candidates}
+            n_locations = len(signatures)
+            tf_idf: dict[int, float] = {}
+            for w in query:
+                refs = model.get(w, {})
+                if not refs or n_locations <= len(refs):
+                    continue
+                for location, n in refs.items():
+                    if location in candidates:
+                        tf_idf[location] = tf_idf.get(location, 0.0) + n * math.log10(n_locations / len(refs))
+            assert vocab.tf_idf_scores(query, candidates, n_locations) == pytest.approx(tf_idf)
+    assert len(vocab._shared) < len(model)  # most words held no dict
+
+
 def brute_force_pairs(query: dict[int, int], signatures: dict[int, list[int]]) -> dict[int, int]:
     """Eq. 1 numerator computed directly from the signatures."""
     out = {}
