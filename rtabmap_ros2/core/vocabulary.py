@@ -225,6 +225,66 @@ class _IvfBuild:
             self.done.set()
 
 
+class _RowIndex:
+    """Word id -> row of the vocabulary's buffer, with no Python object per word: the ids in
+    increasing order (``np.searchsorted``) beside their rows. A removed id keeps its place with row
+    -1 until removed ones are a quarter of the entries (then they are compacted away). Ids larger
+    than every id held are appended: new words get increasing ids, so that is the usual insert."""
+
+    def __init__(self) -> None:
+        self._ids = np.zeros(INITIAL_CAPACITY, np.int64)  # [0, _n) sorted; removed ones have row -1
+        self._rows = np.zeros(INITIAL_CAPACITY, np.int64)
+        self._n = 0
+        self._removed = 0
+
+    def rows(self, ids: np.ndarray) -> np.ndarray:
+        """Row of each id (int64 array), -1 where the id is not held."""
+        ids = np.asarray(ids, np.int64)
+        if self._n == 0:
+            return np.full(ids.shape, -1, np.int64)
+        pos = np.minimum(np.searchsorted(self._ids[: self._n], ids), self._n - 1)
+        return np.where(self._ids[pos] == ids, self._rows[pos], -1)
+
+    def row(self, word_id: int) -> int:
+        """Row of one id, -1 if it is not held."""
+        return int(self.rows(np.array([word_id]))[0])
+
+    def insert(self, ids: np.ndarray, rows: np.ndarray) -> None:
+        """Add ids (none of them held) with their rows."""
+        order = np.argsort(ids, kind="stable")
+        ids, rows = ids[order], rows[order]
+        if self._n and ids[0] <= self._ids[self._n - 1]:
+            # Not above every id held (a word re-added with its id): merge, without the removed.
+            keep = self._rows[: self._n] >= 0
+            ids = np.concatenate([self._ids[: self._n][keep], ids])
+            rows = np.concatenate([self._rows[: self._n][keep], rows])
+            order = np.argsort(ids, kind="stable")
+            ids, rows = ids[order], rows[order]
+            self._n = self._removed = 0
+        needed = self._n + ids.size
+        if needed > self._ids.size:
+            capacity = max(needed, 2 * self._ids.size)
+            self._ids = np.resize(self._ids, capacity)
+            self._rows = np.resize(self._rows, capacity)
+        self._ids[self._n: needed] = ids
+        self._rows[self._n: needed] = rows
+        self._n = needed
+
+    def set_rows(self, ids: np.ndarray, rows: np.ndarray) -> None:
+        """New rows of held ids (the buffer moved them)."""
+        self._rows[np.searchsorted(self._ids[: self._n], ids)] = rows
+
+    def remove(self, ids: np.ndarray) -> None:
+        """Drop held ids."""
+        self._rows[np.searchsorted(self._ids[: self._n], ids)] = -1
+        self._removed += ids.size
+        if self._removed > max(INITIAL_CAPACITY, self._n // 4):
+            keep = np.flatnonzero(self._rows[: self._n] >= 0)
+            self._ids[: keep.size] = self._ids[keep]
+            self._rows[: keep.size] = self._rows[keep]
+            self._n, self._removed = keep.size, 0
+
+
 class Vocabulary:
     """Words (descriptors) with int64 ids, a nearest-neighbour index and the inverted index."""
 
@@ -247,10 +307,10 @@ class Vocabulary:
         self.next_word_id = int(next_word_id)
         self._dtype = np.uint8 if binary else np.float32
         self._dim: int | None = None  # descriptor length (bytes or floats), set by the first words
-        # Words: rows [0, _count) of _descriptors, with their ids in _ids; _slot maps id -> row.
+        # Words: rows [0, _count) of _descriptors, with their ids in _ids; _row_of maps id -> row.
         self._descriptors: np.ndarray | None = None
         self._ids = np.zeros(0, np.int64)
-        self._slot: dict[int, int] = {}
+        self._row_of = _RowIndex()
         self._count = 0
         # IVF index (None while the flat index is used) and the size it was trained at.
         self._ivf = None
@@ -276,7 +336,7 @@ class Vocabulary:
 
     def contains(self, word_id: int) -> bool:
         """True if the word is in the vocabulary (in RAM)."""
-        return int(word_id) in self._slot
+        return self._row_of.row(int(word_id)) >= 0
 
     def word_ids(self) -> np.ndarray:
         """(N,) int64 ids of all words, in storage order."""
@@ -405,7 +465,7 @@ class Vocabulary:
         self._poll_build()
         if ids.min() < 1:
             raise ValueError(f"word id {int(ids.min())} is invalid: word ids are >= 1")
-        present = [int(w) for w in ids if int(w) in self._slot]
+        present = ids[self._row_of.rows(ids) >= 0].tolist()
         if present or np.unique(ids).size != ids.size:
             raise ValueError(f"add_words: ids already in the vocabulary or repeated: {present[:10]} "
                              "(remove them first or re-quantise their descriptors)")
@@ -423,7 +483,8 @@ class Vocabulary:
         ids = np.unique(_as_ids(word_ids))
         if ids.size == 0:
             return
-        missing = [int(w) for w in ids if int(w) not in self._slot]
+        rows = self._row_of.rows(ids)
+        missing = ids[rows < 0].tolist()
         if missing:
             raise KeyError(f"remove_words: words not in the vocabulary: {missing[:10]}")
         self._poll_build()
@@ -431,19 +492,28 @@ class Vocabulary:
             _remove_ids(self._ivf, ids)
         if self._build is not None:
             self._build.log.append(("remove", ids, None))
+        row_of_removed = dict(zip(ids.tolist(), rows.tolist()))  # kept current as rows move
+        moved_rows: dict[int, int] = {}  # the words kept that moved -> their new row
         for word in ids.tolist():
             # Move the last row into the freed slot.
-            slot = self._slot.pop(word)
+            slot = row_of_removed[word]
             last = self._count - 1
             if slot != last:
                 moved = int(self._ids[last])
                 self._descriptors[slot] = self._descriptors[last]
                 self._ids[slot] = moved
                 self._owner[slot] = self._owner[last]
-                self._slot[moved] = slot
+                if moved in row_of_removed:
+                    row_of_removed[moved] = slot
+                else:
+                    moved_rows[moved] = slot
             self._owner[last] = 0
             self._count = last
             self._shared.pop(word, None)
+        self._row_of.remove(ids)
+        if moved_rows:
+            self._row_of.set_rows(np.fromiter(moved_rows, np.int64, len(moved_rows)),
+                                  np.fromiter(moved_rows.values(), np.int64, len(moved_rows)))
 
     def descriptors_of(self, word_ids) -> np.ndarray:
         """(N,D) descriptors of the given words (KeyError if one is absent)."""
@@ -452,10 +522,9 @@ class Vocabulary:
             if ids.size:
                 raise KeyError(f"descriptors_of: the vocabulary is empty (asked {ids[:10].tolist()})")
             return np.zeros((0, 0), self._dtype)
-        try:
-            slots = np.fromiter((self._slot[w] for w in ids.tolist()), np.int64, ids.size)
-        except KeyError as error:
-            raise KeyError(f"descriptors_of: word {error.args[0]} is not in the vocabulary") from None
+        slots = self._row_of.rows(ids)
+        if (slots < 0).any():
+            raise KeyError(f"descriptors_of: word {int(ids[slots < 0][0])} is not in the vocabulary")
         return self._descriptors[slots].copy()
 
     @property
@@ -482,22 +551,21 @@ class Vocabulary:
         """Record that a location contains these words (one entry per occurrence)."""
         location_id = int(location_id)
         words, counts = np.unique(_as_ids(word_ids), return_counts=True)
-        shared, slot, owner = self._shared, self._slot, self._owner
-        for word, count in zip(words.tolist(), counts.tolist()):
+        shared, owner = self._shared, self._owner
+        for word, count, row in zip(words.tolist(), counts.tolist(), self._row_of.rows(words).tolist()):
             locations = shared.get(word)
             if locations is not None:
                 locations[location_id] = locations.get(location_id, 0) + count
                 continue
-            row = slot.get(word)
-            previous = int(owner[row]) if row is not None else 0
-            if row is not None and previous == 0 and count == 1:
+            previous = int(owner[row]) if row >= 0 else 0
+            if row >= 0 and previous == 0 and count == 1:
                 owner[row] = location_id
                 continue
             # A second location or occurrence (or a word outside the vocabulary): a dict.
             locations = {previous: 1} if previous else {}
             locations[location_id] = locations.get(location_id, 0) + count
             shared[word] = locations
-            if row is not None:
+            if row >= 0:
                 owner[row] = 0
 
     def remove_references(self, location_id: int, word_ids: np.ndarray) -> list[int]:
@@ -509,12 +577,11 @@ class Vocabulary:
         location_id = int(location_id)
         orphans = []
         words, counts = np.unique(_as_ids(word_ids), return_counts=True)
-        shared, slot, owner = self._shared, self._slot, self._owner
-        for word, count in zip(words.tolist(), counts.tolist()):
+        shared, owner = self._shared, self._owner
+        for word, count, row in zip(words.tolist(), counts.tolist(), self._row_of.rows(words).tolist()):
             locations = shared.get(word)
             if locations is None:
-                row = slot.get(word)
-                if row is not None and owner[row] == location_id:
+                if row >= 0 and owner[row] == location_id:
                     owner[row] = 0
                     orphans.append(word)
                 continue
@@ -528,10 +595,10 @@ class Vocabulary:
             if not locations:
                 del shared[word]
                 orphans.append(word)
-            elif len(locations) == 1 and word in slot:
+            elif len(locations) == 1 and row >= 0:
                 (last, n), = locations.items()
                 if n == 1:  # back to one occurrence in one location: no dict
-                    owner[slot[word]] = last
+                    owner[row] = last
                     del shared[word]
         return orphans
 
@@ -541,18 +608,16 @@ class Vocabulary:
         locations = self._shared.get(word)
         if locations is not None:
             return dict(locations)
-        row = self._slot.get(word)
-        location = int(self._owner[row]) if row is not None else 0
+        row = self._row_of.row(word)
+        location = int(self._owner[row]) if row >= 0 else 0
         return {location: 1} if location else {}
 
     def _single_owners(self, words) -> np.ndarray:
         """Locations (one per word, repeats kept) of the given words that occur once in one
         location; the words with a dict in ``_shared`` or no reference are left out."""
-        shared, slot = self._shared, self._slot
-        rows = [slot[w] for w in words if w in slot and w not in shared]
-        if not rows:
-            return np.zeros(0, np.int64)
-        owners = self._owner[np.asarray(rows, np.int64)]
+        shared = self._shared
+        rows = self._row_of.rows(np.fromiter((w for w in words if w not in shared), np.int64))
+        owners = self._owner[rows[rows >= 0]]
         return owners[owners != 0]
 
     def scores(self, word_counts: dict[int, int], candidates: set[int] | None = None) -> dict[int, int]:
@@ -651,7 +716,7 @@ class Vocabulary:
         start = self._count
         self._descriptors[start:needed] = descriptors
         self._ids[start:needed] = ids
-        self._slot.update(zip(ids.tolist(), range(start, needed)))
+        self._row_of.insert(ids, np.arange(start, needed, dtype=np.int64))
         self._count = needed
         if self._ivf is not None:
             with _omp_threads(SEARCH_THREADS):

@@ -254,6 +254,45 @@ def test_inverted_index_matches_a_plain_model_through_word_churn(vocab, rng):
     assert len(vocab._shared) < len(model)  # most words held no dict
 
 
+def test_word_rows_follow_adds_removals_and_re_added_ids(rng, monkeypatch):
+    """The id -> row index answers as a dict does through appends, removals (with compaction),
+    row moves and ids re-added below the largest one."""
+    monkeypatch.setattr(vocabulary_module, "INITIAL_CAPACITY", 8)  # compaction every few removals
+    index = vocabulary_module._RowIndex()
+    model: dict[int, int] = {}
+    next_id = 1
+    for step in range(400):
+        action = rng.random()
+        if action < 0.4:
+            ids = np.arange(next_id, next_id + rng.integers(1, 20))
+            next_id = int(ids[-1]) + 1
+        elif action < 0.55:
+            gone = [w for w in range(1, next_id) if w not in model]
+            if not gone:
+                continue
+            ids = np.array(sorted(rng.choice(gone, min(len(gone), 5), replace=False)))
+        elif action < 0.85 and model:
+            ids = rng.choice(np.array(sorted(model)), min(len(model), int(rng.integers(1, 12))), replace=False)
+            index.remove(ids)
+            for w in ids.tolist():
+                del model[w]
+            continue
+        elif model:
+            ids = rng.choice(np.array(sorted(model)), min(len(model), 4), replace=False)
+            rows = rng.integers(0, 10_000, ids.size)
+            index.set_rows(ids, rows)
+            model.update(zip(ids.tolist(), rows.tolist()))
+            continue
+        else:
+            continue
+        rows = rng.integers(0, 10_000, ids.size)
+        index.insert(ids, rows)
+        model.update(zip(ids.tolist(), rows.tolist()))
+        probe = np.arange(0, next_id + 3)
+        assert index.rows(probe).tolist() == [model.get(w, -1) for w in probe.tolist()]
+    assert index.row(next_id + 100) == -1
+
+
 def brute_force_pairs(query: dict[int, int], signatures: dict[int, list[int]]) -> dict[int, int]:
     """Eq. 1 numerator computed directly from the signatures."""
     out = {}
