@@ -163,8 +163,8 @@ class Memory:
                 self._batch.weights[prev.id] = 0
             return 0
         # z_t is cleared and z_c copied into it; the words L_t had just added leave the vocabulary.
-        self.vocabulary.remove_references(sig.id, sig.word_ids)
-        fresh = [w for w in new_word_ids if not self.vocabulary.references(w)]
+        orphans = set(self.vocabulary.remove_references(sig.id, sig.word_ids))
+        fresh = [w for w in new_word_ids if w in orphans]
         if fresh:
             self.vocabulary.remove_words(np.asarray(fresh, dtype=np.int64))
             for w in fresh:
@@ -331,8 +331,7 @@ class Memory:
     def _requantize(self, sig: Signature) -> None:
         """Old words no longer in the vocabulary are matched to current ones, or re-added (Alg. 3)."""
         words = sig.word_ids
-        gone = np.unique(words[[not self.vocabulary.contains(int(w)) for w in words.tolist()]]) \
-            if len(words) else np.zeros(0, np.int64)
+        gone = np.unique(words[~self.vocabulary.present(words)])
         if not len(gone):
             return
         descriptors = self.db.load_words(gone.tolist())

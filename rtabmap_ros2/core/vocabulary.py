@@ -338,6 +338,10 @@ class Vocabulary:
         """True if the word is in the vocabulary (in RAM)."""
         return self._row_of.row(int(word_id)) >= 0
 
+    def present(self, word_ids) -> np.ndarray:
+        """(N,) bool: True where the word is in the vocabulary (one lookup for all of them)."""
+        return self._row_of.rows(_as_ids(word_ids)) >= 0
+
     def word_ids(self) -> np.ndarray:
         """(N,) int64 ids of all words, in storage order."""
         return self._ids[: self._count].copy()
@@ -465,7 +469,7 @@ class Vocabulary:
         self._poll_build()
         if ids.min() < 1:
             raise ValueError(f"word id {int(ids.min())} is invalid: word ids are >= 1")
-        present = ids[self._row_of.rows(ids) >= 0].tolist()
+        present = ids[self.present(ids)].tolist()
         if present or np.unique(ids).size != ids.size:
             raise ValueError(f"add_words: ids already in the vocabulary or repeated: {present[:10]} "
                              "(remove them first or re-quantise their descriptors)")
