@@ -78,6 +78,9 @@ class OptimizationResult:
             (plain Gaussian errors, no robust kernel).
         iterations: optimiser iterations (summed over the robust re-optimisation).
         rejected: loop closures dropped by the robust mode.
+        switched_off: loop closures the robust mode could not drop (bridges: nothing else joins
+            their ends) whose DCS scale ended below ``robust_reject_scale``: in the solution but
+            barely weighted, so their error says nothing about the rest.
         time_s: wall time of the optimisation (s).
     """
 
@@ -87,6 +90,7 @@ class OptimizationResult:
     iterations: int
     rejected: list[Link] = field(default_factory=list)
     time_s: float = 0.0
+    switched_off: list[Link] = field(default_factory=list)
 
 
 # -- conversions ---------------------------------------------------------------------------------
@@ -328,9 +332,14 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
         if rejected:
             logger.debug("robust optimisation rejected %d loop closure(s): %s", len(rejected),
                         [(l.from_id, l.to_id) for l in rejected])
+        switched_off = [link for link in kept if id(link) in robust
+                        and _dcs_scale(plain[id(link)], values) < params.robust_reject_scale]
+    else:
+        switched_off = []
     chi2_final = _chi2((plain[id(link)] for link in kept), values)
     out = _poses_of(values, planar)
-    return OptimizationResult(out, chi2_initial, chi2_final, iterations, rejected, time.perf_counter() - start)
+    return OptimizationResult(out, chi2_initial, chi2_final, iterations, rejected, time.perf_counter() - start,
+                              switched_off)
 
 
 def _solve(links: list[Link], factors: dict, initial, root_id: int, root_pose: np.ndarray,

@@ -176,6 +176,32 @@ def test_max_error_ratio_flags_a_link_bent_beyond_its_standard_deviation():
     assert _max_error_ratio(poses, [link], planar=True) == pytest.approx(np.deg2rad(2.0) / 0.01, rel=1e-3)
 
 
+def test_max_error_ratio_counts_an_old_strain_only_by_how_far_the_new_loop_closures_moved_it():
+    """A link already 3.1 std devs off before the frame's loop closure (a 2,000-link local map has
+    a few) does not make a true loop closure that moves it by 0.2 look wrong; a link the loop
+    closure bends from 0 to 5 std devs, and the new loop closure's own error, still count."""
+    info = np.diag(1.0 / np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4]))  # sigma 1 cm
+    strained = Link(1, 2, LinkType.NEIGHBOR, transforms.from_xy_yaw(1.0, 0, 0), info)
+    loop = Link(2, 3, LinkType.LOOP_INTER, transforms.from_xy_yaw(1.0, 0, 0), info)
+    before = {1: transforms.identity(), 2: transforms.from_xy_yaw(1.031, 0, 0), 3: transforms.from_xy_yaw(2.031, 0, 0)}
+    after = {1: transforms.identity(), 2: transforms.from_xy_yaw(1.033, 0, 0), 3: transforms.from_xy_yaw(2.033, 0, 0)}
+    assert _max_error_ratio(after, [strained, loop], planar=True) == pytest.approx(3.3, rel=1e-6)
+    assert _max_error_ratio(after, [strained, loop], planar=True, before=before,
+                            new={loop.key()}) == pytest.approx(0.2, abs=1e-6)
+    bent = {**after, 2: transforms.from_xy_yaw(1.081, 0, 0), 3: transforms.from_xy_yaw(2.081, 0, 0)}
+    assert _max_error_ratio(bent, [strained, loop], planar=True, before=before,
+                            new={loop.key()}) == pytest.approx(5.0, rel=1e-6)
+    off = {**after, 3: transforms.from_xy_yaw(2.083, 0, 0)}  # the new loop closure itself 5 cm off
+    assert _max_error_ratio(off, [strained, loop], planar=True, before=before,
+                            new={loop.key()}) == pytest.approx(5.0, rel=1e-6)
+    relaxed = {**after, 2: transforms.from_xy_yaw(1.078, 0, 0), 3: transforms.from_xy_yaw(2.078, 0, 0)}
+    strained_more = {**before, 2: transforms.from_xy_yaw(1.11, 0, 0)}  # 11 std devs off before
+    assert _max_error_ratio(relaxed, [strained], planar=True, before=strained_more) == 0.0  # 11 -> 7.8: not worse
+    turned = {**after, 2: transforms.from_xy_yaw(1.031, 0, np.deg2rad(4.0))}  # rotation moved 4 deg
+    assert _max_error_ratio(turned, [strained], planar=True, before=before) == pytest.approx(
+        np.deg2rad(4.0) / 0.01, rel=1e-3)
+
+
 def test_poses_kept_for_nodes_that_left_the_local_map_stay_consistent_as_its_frame_moves(tmp_path):
     """Each local map solution is rooted at its newest node's odometry pose, so its frame moves
     from one solution to the next; the poses kept for nodes that left it (transferred to LTM)

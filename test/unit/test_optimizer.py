@@ -212,3 +212,23 @@ def test_released_links_lose_their_cached_gtsam_objects():
     assert len(optimizer_module._GTSAM_CACHE) == before
     result = optimize(poses, links, 2, GraphParams(), planar=True)  # made again when needed
     assert np.allclose(result.poses[0][:3, 3], [0.0, 0.0, 0.0], atol=1e-6)
+
+
+def test_a_false_loop_closure_the_robust_mode_cannot_drop_is_reported_switched_off():
+    """Two chains joined only by one loop closure that says they are 40 m from where the guess
+    puts them (a bridge: dropping it would disconnect the graph). DCS leaves it barely weighted,
+    so the solution keeps the guess and the link is reported switched off, not silently
+    'satisfied'; a true bridge is not."""
+    info = default_information(1e-4)
+    step = transforms.from_xy_yaw(1.0, 0.0, 0.0)
+    links = [Link(i, i + 1, LinkType.NEIGHBOR, step, info) for i in range(1, 5)]
+    links += [Link(i, i + 1, LinkType.NEIGHBOR, step, info) for i in range(11, 15)]
+    guess = {i: transforms.from_xy_yaw(i - 1.0, 0.0, 0.0) for i in range(1, 6)}
+    guess.update({i: transforms.from_xy_yaw(i - 11.0, 1.0, 0.0) for i in range(11, 16)})
+    beside = transforms.from_xy_yaw(0.0, 1.0, 0.0)  # node 13 is 1 m to the side of node 3
+    true = Link(3, 13, LinkType.LOOP_INTER, beside, info)
+    result = optimize(guess, links + [true], 5, GraphParams(), planar=True)
+    assert result.switched_off == [] and result.rejected == []
+    false = Link(3, 13, LinkType.LOOP_INTER, transforms.from_xy_yaw(40.0, 1.0, 0.0), info)
+    result = optimize(guess, links + [false], 5, GraphParams(), planar=True)
+    assert result.rejected == [] and result.switched_off == [false]
