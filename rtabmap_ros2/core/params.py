@@ -305,7 +305,8 @@ class GraphParams:
     optimize_max_error: float = _p(
         3.0, "Reject the frame's new loop closures when, after optimising with them, a link's error "
         "exceeds this many standard deviations (RTAB-Map's RGBD/OptimizeMaxError; 0 = no check): "
-        "a wrong loop closure (perceptual aliasing) bends the odometry chain", "std dev")
+        "a wrong loop closure (perceptual aliasing) bends the odometry chain. A link already off "
+        "before them counts only if its error grew, by how far it moved", "std dev")
     merge_min_separation: float = _p(
         5.0, "A loop closure joining two maps that are not connected yet (an inter-session merge) "
         "is held until a second one, between places at least this far from the first on both maps, "
