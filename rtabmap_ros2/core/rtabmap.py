@@ -866,10 +866,12 @@ class Rtabmap:
                  if link.from_id in component and link.to_id in component]
         limit = self.params.graph.optimize_max_error
         if fresh and limit > 0:
-            ignored = self._inactive_links | {link.key() for link in result.switched_off}
+            # Loop closures the robust kernel switched off are not judged, but the frame's own
+            # new ones always are (one switched off is as good as rejected).
+            new = {link.key() for link, _ in fresh}
+            ignored = self._inactive_links | ({link.key() for link in result.switched_off} - new)
             active = [link for link in links if link.key() not in ignored]
-            worst = _max_error_ratio(result.poses, active, bool(self._planar), before=previous,
-                                     new={link.key() for link, _ in fresh})
+            worst = _max_error_ratio(result.poses, active, bool(self._planar), before=previous, new=new)
             if worst > limit:
                 for link, before in fresh:
                     log.info("loop closure %d -> %d rejected: a link ends %.1f std devs off after "
