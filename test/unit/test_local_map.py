@@ -9,7 +9,7 @@ from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Link, LinkType, consensus_guess, default_information
 from rtabmap_ros2.core.params import Params, RegistrationParams
 from rtabmap_ros2.core.registration import refine_neighbor_link
-from rtabmap_ros2.core.rtabmap import Rtabmap, _max_error_ratio
+from rtabmap_ros2.core.rtabmap import Rtabmap, _judged_links, _max_error_ratio
 from rtabmap_ros2.core.sensor import LaserScan, SensorFrame
 from rtabmap_ros2.errors import RegistrationError
 
@@ -200,6 +200,17 @@ def test_max_error_ratio_counts_an_old_strain_only_by_how_far_the_new_loop_closu
     turned = {**after, 2: transforms.from_xy_yaw(1.031, 0, np.deg2rad(4.0))}  # rotation moved 4 deg
     assert _max_error_ratio(turned, [strained], planar=True, before=before) == pytest.approx(
         np.deg2rad(4.0) / 0.01, rel=1e-3)
+
+
+def test_optimize_max_error_skips_switched_off_loop_closures_but_never_the_frames_own():
+    info = default_information(1e-3)
+    neighbour = Link(1, 2, LinkType.NEIGHBOR, transforms.identity(), info)
+    dropped = Link(2, 7, LinkType.LOOP_INTRA, transforms.identity(), info)
+    old_bridge = Link(3, 8, LinkType.LOOP_INTER, transforms.identity(), info)
+    fresh = Link(4, 9, LinkType.LOOP_INTER, transforms.identity(), info)
+    links = [neighbour, dropped, old_bridge, fresh]
+    judged = _judged_links(links, {dropped.key()}, [old_bridge, fresh], {fresh.key()})
+    assert judged == [neighbour, fresh]
 
 
 def test_poses_kept_for_nodes_that_left_the_local_map_stay_consistent_as_its_frame_moves(tmp_path):
