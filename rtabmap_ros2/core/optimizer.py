@@ -78,9 +78,9 @@ class OptimizationResult:
             (plain Gaussian errors, no robust kernel).
         iterations: optimiser iterations (summed over the robust re-optimisation).
         rejected: loop closures dropped by the robust mode.
-        switched_off: loop closures the robust mode could not drop (bridges: nothing else joins
-            their ends) whose DCS scale ended below ``robust_reject_scale``: in the solution but
-            barely weighted, so their error says nothing about the rest.
+        switched_off: loop closures kept in the solution whose DCS scale ended below
+            ``robust_reject_scale`` (bridges the robust mode may not drop, or ones left when its
+            rounds ran out): barely weighted, so their error says nothing about the rest.
         time_s: wall time of the optimisation (s).
     """
 
@@ -329,11 +329,13 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
             rejected += dropped
             values, more = _solve(kept, factors, values, root_id, poses[root_id], params, planar)
             iterations += more
+        else:  # rounds used up: the last solve moved the values the scales were taken at
+            scales = {key: _dcs_scale(plain[key], values) for key in robust}
         if rejected:
             logger.debug("robust optimisation rejected %d loop closure(s): %s", len(rejected),
                         [(l.from_id, l.to_id) for l in rejected])
-        switched_off = [link for link in kept if id(link) in robust
-                        and _dcs_scale(plain[id(link)], values) < params.robust_reject_scale]
+        # Both breaks above leave ``scales`` taken at the final values.
+        switched_off = [link for link in kept if id(link) in robust and scales[id(link)] < threshold]
     else:
         switched_off = []
     chi2_final = _chi2((plain[id(link)] for link in kept), values)

@@ -1140,9 +1140,9 @@ def _max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: bo
 def _judged_links(links: list[Link], inactive: set[tuple[int, int]], switched_off: list[Link],
                   new: set[tuple[int, int]]) -> list[Link]:
     """The links RGBD/OptimizeMaxError judges: not those the robust kernel dropped (``inactive``)
-    or switched off (a false bridge it could not drop), except the frame's ``new`` loop closures,
-    which are always judged (one switched off is as good as rejected: seed 5 at T_time 0.1 s
-    accepted 6 false ones online when they were not)."""
+    or switched off (barely weighted, e.g. a false bridge it may not drop), except the frame's
+    ``new`` loop closures, which are always judged (one switched off is as good as rejected: seed
+    5 at T_time 0.1 s accepted 6 false ones online when they were not)."""
     ignored = inactive | ({link.key() for link in switched_off} - new)
     return [link for link in links if link.key() not in ignored]
 
