@@ -136,11 +136,13 @@ def false_loop_closures(rows: list[dict], gt: Trajectory, gmap) -> dict:
 
 
 def link_errors(gmap, gt: Trajectory) -> dict:
-    """Median / max error of each link type's transform against the ground truth."""
+    """Median / max error of each link type's transform against the ground truth, and the error in
+    the link's own standard deviations (calibration: a translation error's norm over the smaller
+    x / y std dev, median and 90th percentile; for well-calibrated planar links ~1.18 and ~2.15)."""
     G = _gt_lookup(gt, [gmap.stamps_ns[n] for n in gmap.poses])
     out = {}
     for kind in ("neighbor", "loop_intra", "loop_inter"):
-        t_err, r_err = [], []
+        t_err, r_err, t_std_devs = [], [], []
         for link in gmap.links:
             if link.type.value != kind:
                 continue
@@ -150,9 +152,12 @@ def link_errors(gmap, gt: Trajectory) -> dict:
             E = link.residual(a, b)  # planar: same |t| and |yaw| as its inverse
             t_err.append(float(np.linalg.norm(E[:2, 3])))
             r_err.append(float(np.degrees(abs(transforms.yaw_of(E)))))
+            t_std_devs.append(t_err[-1] * np.sqrt(min(link.information[0, 0], link.information[1, 1])))
         if t_err:
             out[kind] = {"n": len(t_err), "median_m": float(np.median(t_err)), "max_m": float(np.max(t_err)),
-                         "median_deg": float(np.median(r_err)), "max_deg": float(np.max(r_err))}
+                         "median_deg": float(np.median(r_err)), "max_deg": float(np.max(r_err)),
+                         "median_std_devs": float(np.median(t_std_devs)),
+                         "p90_std_devs": float(np.quantile(t_std_devs, 0.9))}
     return out
 
 
