@@ -13,6 +13,7 @@ prediction is a handful of numpy operations per frame rather than an N x N matri
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -66,8 +67,14 @@ def likelihood(scores: dict[int, float]) -> dict[int, float]:
 class TransitionModel:
     """Cached Gaussian neighbourhoods of the transition model p(S_t = i | S_t-1 = j) (§III-C, 4)."""
 
-    def __init__(self, params: BayesParams, graph: Graph) -> None:
+    def __init__(self, params: BayesParams, graph: Graph,
+                 kept: Optional[Callable[[int], bool]] = None) -> None:
+        """``graph``: anything with ``hops_from`` and ``neighbors`` (a Graph, or the Memory: its
+        whole graph, LTM links read from the database); ``kept``: which reached nodes a cached
+        neighbourhood keeps (the ones in memory: the others are not hypotheses, and the
+        neighbourhoods of a small-world graph would otherwise grow with LTM)."""
         self._graph = graph
+        self._kept = kept
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         hops = np.arange(params.neighborhood + 1)
         gaussian = np.exp(-0.5 * (hops / params.sigma) ** 2)
@@ -86,9 +93,8 @@ class TransitionModel:
         """
         for node in node_ids:
             self._cache.pop(node, None)
-            if node in self._graph:
-                for other in self._graph.neighbors(node):
-                    self._cache.pop(other, None)
+            for other in self._graph.neighbors(node):
+                self._cache.pop(other, None)
 
     def forget(self, node_ids) -> None:
         """Drop the cached neighbourhoods of nodes that left WM: in a graph made small-world by
@@ -102,6 +108,8 @@ class TransitionModel:
         cached = self._cache.get(node_id)
         if cached is None:
             hops = self._graph.hops_from(node_id, self._radius)
+            if self._kept is not None:
+                hops = {n: d for n, d in hops.items() if self._kept(n)}
             ids = np.fromiter(hops.keys(), dtype=np.int64, count=len(hops))
             dist = np.fromiter(hops.values(), dtype=np.int64, count=len(hops))
             cached = (ids, self._gaussian[dist])
@@ -112,9 +120,9 @@ class TransitionModel:
 class BayesFilter:
     """The recursive filter; its support follows WM as locations enter and leave it."""
 
-    def __init__(self, params: BayesParams, graph: Graph) -> None:
+    def __init__(self, params: BayesParams, graph: Graph, kept: Optional[Callable[[int], bool]] = None) -> None:
         self.params = params
-        self.transitions = TransitionModel(params, graph)
+        self.transitions = TransitionModel(params, graph, kept)
         self.posterior: dict[int, float] = {NEW_LOCATION: 1.0}
 
     def reset(self) -> None:

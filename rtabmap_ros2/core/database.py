@@ -808,6 +808,29 @@ class Database:
             links.append(Link(a, b, link_type, _transform(T), np.frombuffer(info, np.float64).reshape(6, 6).copy()))
         return links
 
+    def link_ends(self, node_ids: Iterable[int]) -> list[tuple[int, int, LinkType]]:
+        """(node, other end, type) of every link of the nodes ``node_ids`` (either orientation):
+        the graph search through LTM, without reading transforms."""
+        ids = json.dumps([int(i) for i in node_ids])
+        rows = self._query("SELECT from_id, to_id, type FROM links WHERE from_id IN (SELECT value FROM json_each(?1))"
+                           " UNION ALL SELECT to_id, from_id, type FROM links"
+                           " WHERE to_id IN (SELECT value FROM json_each(?1))", (ids,))
+        try:
+            return [(a, b, LinkType(kind)) for a, b, kind in rows]
+        except ValueError as e:
+            raise DatabaseError(f"a link in {self.path} has an unknown type ({e})") from e
+
+    def first_node_of_maps(self) -> dict[int, int]:
+        """Map id -> its first node id (sessions are ranges of node ids)."""
+        return dict(self._query("SELECT map_id, min(id) FROM nodes GROUP BY map_id"))
+
+    def node_count(self) -> int:
+        return int(self._query("SELECT count(*) FROM nodes")[0][0])
+
+    def inter_session_pairs(self) -> list[tuple[int, int]]:
+        """(from_id, to_id) of every inter-session loop closure."""
+        return self._query("SELECT from_id, to_id FROM links WHERE type = ?", (LinkType.LOOP_INTER.value,))
+
     def load_nodes(self) -> dict[int, NodeInfo]:
         """Graph part of every node (WM and LTM): id -> NodeInfo, for the global map."""
         rows = self._query("SELECT id, map_id, stamp_ns, weight, T_odom_base, in_wm, bad FROM nodes ORDER BY id")

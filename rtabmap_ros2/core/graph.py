@@ -72,7 +72,8 @@ class Link:
 
 
 class Graph:
-    """Adjacency of every node and link (WM and LTM); small: ids, types and transforms only."""
+    """Adjacency of nodes and links: ids, types and transforms. The memory's graph holds the links
+    that touch a location in memory (STM/WM) only; the global map's, every link."""
 
     def __init__(self, links: Iterable[Link] = ()) -> None:
         self._adjacency: dict[int, dict[int, Link]] = {}
@@ -103,6 +104,11 @@ class Graph:
         for link in links:
             self._adjacency.get(link.to_id, {}).pop(node_id, None)
         return links
+
+    def discard_isolated(self, node_id: int) -> None:
+        """Forget a node that has no link left (a no-op otherwise)."""
+        if not self._adjacency.get(node_id, True):
+            del self._adjacency[node_id]
 
     def __contains__(self, node_id: int) -> bool:
         return node_id in self._adjacency

@@ -15,14 +15,15 @@ All database writes of a frame go in one :class:`WriteBatch` committed by the ba
 from __future__ import annotations
 
 import logging
-from collections import deque
-from typing import Callable, Iterable
+from collections import Counter, deque
+from typing import Callable, Iterable, Iterator, Optional
 
 import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.database import BackgroundWriter, Database, SensorBlobs, WriteBatch
 from rtabmap_ros2.core.graph import Graph, Link, LinkType, loop_type
+from rtabmap_ros2.core.node_tables import SessionIds
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.sensor import LaserScan
 from rtabmap_ros2.core.signature import Signature, similarity
@@ -38,11 +39,16 @@ class Memory:
         self.params = params
         self.db = database
         self.writer = BackgroundWriter(database)
-        self.graph = Graph(database.load_links())
-        # Session of every node, WM and LTM (ints only: tells intra- from inter-session links).
-        self.map_ids: dict[int, int] = {n: info.map_id for n, info in database.load_nodes().items()}
-        for node in self.map_ids:
-            self.graph.add_node(node)
+        # In RAM, as in RTAB-Map: the links that touch a location in memory (STM/WM); a link
+        # between two LTM locations is in the database only (RAM stays flat once WM stops
+        # growing). Session of every node as id ranges, and how many inter-session loop closures
+        # join each pair of sessions (which maps are one: connected_maps).
+        self.graph = Graph()
+        self.map_ids = SessionIds(database.first_node_of_maps(), database.max_location_id())
+        self.node_count = database.node_count()
+        self.session_links: Counter[tuple[int, int]] = Counter()
+        for a, b in database.inter_session_pairs():
+            self.session_links[_pair(self.map_ids[a], self.map_ids[b])] += 1
         self.vocabulary = Vocabulary(params.vocabulary, binary=binary_descriptors,
                                      next_word_id=database.max_word_id() + 1)
         self.signatures: dict[int, Signature] = {}
@@ -66,6 +72,8 @@ class Memory:
         ids = self.db.wm_ids()
         if not ids:
             return
+        for link in self.db.load_links(ids):
+            self.graph.add_link(link)
         signatures = self.db.load_signatures(ids)
         missing = sorted({int(w) for s in signatures for w in s.word_ids.tolist()})
         descriptors = self.db.load_words(missing)
@@ -85,7 +93,24 @@ class Memory:
     # -- sizes -------------------------------------------------------------------------------
     @property
     def ltm_size(self) -> int:
-        return len(self.graph) - len(self.signatures)
+        return self.node_count - len(self.signatures)
+
+    def connected_maps(self, map_id: int) -> set[int]:
+        """Map ids joined to ``map_id`` by inter-session loop closures (itself included): the
+        sessions of its connected component (each session is connected by its neighbour links)."""
+        adjacent: dict[int, list[int]] = {}
+        for (a, b), count in self.session_links.items():
+            if count > 0:
+                adjacent.setdefault(a, []).append(b)
+                adjacent.setdefault(b, []).append(a)
+        found = {map_id}
+        stack = [map_id]
+        while stack:
+            for other in adjacent.get(stack.pop(), ()):
+                if other not in found:
+                    found.add(other)
+                    stack.append(other)
+        return found
 
     def last_location(self) -> Signature | None:
         """The newest location in STM (or WM when STM is empty)."""
@@ -115,7 +140,8 @@ class Memory:
     def add_location(self, sig: Signature, blobs: SensorBlobs | None, neighbor: Link | None) -> None:
         """Insert a new location in STM with its neighbour link (Alg. 1 line 7)."""
         self.signatures[sig.id] = sig
-        self.map_ids[sig.id] = sig.map_id
+        self.map_ids.add(sig.id, sig.map_id)
+        self.node_count += 1
         self.stm.append(sig.id)
         self.graph.add_node(sig.id)
         self.vocabulary.add_references(sig.id, sig.word_ids)
@@ -124,15 +150,25 @@ class Memory:
             self.add_link(neighbor)
 
     def add_link(self, link: Link) -> None:
+        self._count_session_link(self.graph.link(link.from_id, link.to_id), -1)
         self.graph.add_link(link)
+        self._count_session_link(link, +1)
         self._batch.add_link(link)
         self.on_graph_change(link.from_id, link.to_id)
 
     def remove_link(self, a: int, b: int) -> None:
         """Drop a link (e.g. a loop closure the robust optimiser found inconsistent)."""
         self.on_graph_change(a, b)
+        self._count_session_link(self.graph.link(a, b), -1)
         self.graph.remove_link(a, b)
         self._batch.delete_link(a, b)
+
+    def _count_session_link(self, link: Link | None, change: int) -> None:
+        if link is not None and link.type is LinkType.LOOP_INTER:
+            pair = _pair(self.map_ids[link.from_id], self.map_ids[link.to_id])
+            self.session_links[pair] += change
+            if self.session_links[pair] <= 0:
+                del self.session_links[pair]
 
     # -- weight update / rehearsal (§III-B, Eq. 1) ------------------------------------------------
     def rehearse(self, sig: Signature, new_word_ids: Iterable[int]) -> int:
@@ -186,6 +222,7 @@ class Memory:
         sig.weight += prev.weight + 1
         self.on_graph_change(prev.id)
         for link in self.graph.remove_node(prev.id):
+            self._count_session_link(link, -1)
             self._batch.delete_link(link.from_id, link.to_id)
             if link.to_id == sig.id:
                 continue
@@ -197,7 +234,7 @@ class Memory:
             self.add_link(Link(sig.id, link.to_id, kind, T_t_c @ link.T_from_to, information))
         self.stm.remove(prev.id)
         del self.signatures[prev.id]
-        del self.map_ids[prev.id]
+        self.node_count -= 1
         self._new_locations.pop(prev.id, None)
         self._batch.deleted_locations.append(prev.id)
         if self.last_loop_closure_id == prev.id:
@@ -275,18 +312,75 @@ class Memory:
         self.last_loop_closure_id = last_id
 
     # -- retrieval (Alg. 3) ---------------------------------------------------------------------
-    def retrieval_candidates(self, hypothesis_id: int) -> list[int]:
-        """LTM neighbours of the hypothesis: time neighbours first, then space neighbours (§III-E)."""
-        reach = self.params.bayes.neighborhood
-        if hypothesis_id not in self.graph:
+    def retrieval_candidates(self, hypothesis_id: int, limit: Optional[int] = None,
+                             exclude: Iterable[int] = ()) -> list[int]:
+        """LTM neighbours of the hypothesis within ``bayes.neighborhood`` hops: time neighbours
+        first, then space neighbours, nearest first (then by id) (§III-E); the first ``limit``
+        not in ``exclude``. The search reads an LTM location's links from the database
+        (RTAB-Map's Memory::getNeighborsId) and stops at the first hop that gives enough."""
+        if hypothesis_id not in self.signatures:
             return []
-        time_hops = self.graph.hops_from(hypothesis_id, reach, types=(LinkType.NEIGHBOR,))
-        all_hops = self.graph.hops_from(hypothesis_id, reach)
-        in_ltm = [n for n in time_hops if n not in self.signatures]
-        ordered = sorted(in_ltm, key=lambda n: (time_hops[n], n))
-        rest = sorted((n for n in all_hops if n not in self.signatures and n not in time_hops),
-                      key=lambda n: (all_hops[n], n))
-        return ordered + rest
+        excluded = set(exclude)
+        found: list[int] = []
+
+        def collect(levels: Iterator[list[int]], skip: set[int]) -> bool:
+            for level in levels:
+                found.extend(n for n in sorted(level) if n not in self.signatures and n not in skip
+                             and n not in excluded)
+                if limit is not None and len(found) >= limit:
+                    return True
+            return False
+
+        reach = self.params.bayes.neighborhood
+        time_hops: set[int] = set()
+        if collect(self._levels(hypothesis_id, reach, (LinkType.NEIGHBOR,), reached=time_hops), set()):
+            return found[:limit]
+        collect(self._levels(hypothesis_id, reach, None), time_hops)
+        return found[:limit]
+
+    def hops_from(self, start: int, max_hops: int, types: Optional[tuple[LinkType, ...]] = None) -> dict[int, int]:
+        """Hop distance to every node within ``max_hops`` of ``start`` over the whole graph, WM
+        and LTM (``Graph.hops_from``, LTM links read from the database): the Bayes filter's
+        neighbourhoods, as when every link was in RAM."""
+        return {node: hop for hop, level in enumerate(self._levels(start, max_hops, types)) for node in level}
+
+    def neighbors(self, node: int) -> list[int]:
+        """Nodes linked to ``node`` (``Graph.neighbors`` over the whole graph)."""
+        return self._adjacent([node], None)
+
+    def _levels(self, start: int, reach: int, types: Optional[tuple[LinkType, ...]],
+                reached: Optional[set[int]] = None) -> Iterator[list[int]]:
+        """Breadth-first levels from ``start`` (itself first) up to ``reach`` hops over links of
+        ``types`` (None: all), RAM for locations in memory, the database for LTM ones; every node
+        reached goes into ``reached``."""
+        reached = set() if reached is None else reached
+        reached.add(start)
+        level = [start]
+        for hop in range(reach + 1):
+            yield level
+            if hop == reach:
+                return
+            following: list[int] = []
+            for other in self._adjacent(level, types):
+                if other not in reached:
+                    reached.add(other)
+                    following.append(other)
+            if not following:
+                return
+            level = following
+
+    def _adjacent(self, nodes: list[int], types: Optional[tuple[LinkType, ...]]) -> list[int]:
+        """Nodes linked to any of ``nodes`` by a link of ``types`` (None: all), in link order."""
+        out: list[int] = []
+        in_ltm = []
+        for node in nodes:
+            if node in self.signatures:
+                out.extend(self.graph.neighbors(node, types))
+            else:
+                in_ltm.append(node)
+        if in_ltm:
+            out.extend(other for _, other, kind in self.db.link_ends(in_ltm) if types is None or kind in types)
+        return out
 
     def local_retrieval_candidates(self, nearest: list[int], limit: int) -> list[int]:
         """SLAM mode: up to ``limit`` LTM locations linked to ``nearest`` (the local map's nodes
@@ -297,7 +391,7 @@ class Memory:
         found: list[int] = []
         for sources in (nearest, found):
             for node in sources:  # ``found`` grows while its neighbours are looked at
-                for other in sorted(self.graph.neighbors(node), reverse=True):
+                for other in sorted(self._adjacent([node], None), reverse=True):
                     if len(found) >= limit:
                         return found
                     if other not in self.signatures and other not in found:
@@ -316,15 +410,20 @@ class Memory:
 
     def retrieve(self, ids: list[int]) -> list[int]:
         """Bring the LTM locations ``ids`` back to WM (Alg. 3); returns the ids retrieved."""
-        ids = [n for n in dict.fromkeys(ids) if n not in self.signatures and n in self.graph]
+        ids = [n for n in dict.fromkeys(ids) if n not in self.signatures]
         if not ids:
             return []
-        for sig in self.db.load_signatures(ids):
+        signatures = self.db.load_signatures(ids)
+        for sig in signatures:
             self._requantize(sig)
             self.signatures[sig.id] = sig
             self.wm[sig.id] = None
             self.vocabulary.add_references(sig.id, sig.word_ids)
             self._batch.in_wm[sig.id] = True
+        ids = [sig.id for sig in signatures]
+        # Their links come back to RAM with them (also those to other LTM locations).
+        for link in self.db.load_links(ids):
+            self.graph.add_link(link)
         self.retrieved_now.extend(ids)
         return ids
 
@@ -391,12 +490,22 @@ class Memory:
                 per_map[m] -= 1
                 del self.wm[node]
                 del self.signatures[node]
+                self._drop_ltm_links(node)
                 self._batch.in_wm[node] = False
                 self._batch.weights[node] = sig.weight
                 transferred.append(node)
             if words_out >= wanted and len(transferred) >= locations:
                 break
         return transferred
+
+    def _drop_ltm_links(self, node: int) -> None:
+        """``node`` left memory: its links to other LTM locations leave RAM (they are in the
+        database, or in this frame's batch, committed before anything reads them back)."""
+        for other in self.graph.neighbors(node):
+            if other not in self.signatures:
+                self.graph.remove_link(node, other)
+                self.graph.discard_isolated(other)
+        self.graph.discard_isolated(node)
 
     def _recent_immune(self) -> set[int]:
         """T_recent: the highest-weighted WM locations after the last loop closure (§III-F)."""
@@ -409,9 +518,9 @@ class Memory:
 
     def time_neighbours(self, node_id: int) -> set[int]:
         """Neighbours in time of a node within the transition model's range (protected from transfer)."""
-        if node_id not in self.graph:
+        if node_id not in self.signatures:
             return set()
-        return set(self.graph.hops_from(node_id, self.params.bayes.neighborhood, types=(LinkType.NEIGHBOR,)))
+        return set(self.hops_from(node_id, self.params.bayes.neighborhood, types=(LinkType.NEIGHBOR,)))
 
     # -- database --------------------------------------------------------------------------------
     def record_statistics(self, row: dict) -> None:
@@ -456,3 +565,7 @@ def _transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
         return points
     out = points.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
     return out.astype(np.float32)
+
+
+def _pair(a: int, b: int) -> tuple[int, int]:
+    return (a, b) if a <= b else (b, a)

@@ -38,6 +38,7 @@ from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid, scan_conflict
 from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, chain_poses, consensus_guess, default_information,
                                      loop_type)
 from rtabmap_ros2.core.memory import Memory
+from rtabmap_ros2.core.node_tables import PoseTable
 from rtabmap_ros2.core.optimizer import load_backend, optimize, release
 from rtabmap_ros2.core.wm_budget import WorkingMemoryBudget
 from rtabmap_ros2.core.params import Params
@@ -177,7 +178,7 @@ class Rtabmap:
         self.db = Database(self.database_path)
         self.db.set_parameters(self.params.to_dict())
         self.memory = Memory(self.params, self.db, self.extractor.binary)
-        self.bayes = BayesFilter(self.params.bayes, self.memory.graph)
+        self.bayes = BayesFilter(self.params.bayes, self.memory, kept=self.memory.signatures.__contains__)
         self.memory.on_graph_change = self.bayes.transitions.invalidate_around
         self.frame_index = self.db.max_frame_index() + 1
         self.localization_mode = False
@@ -201,7 +202,7 @@ class Rtabmap:
         # Last optimised pose of every node that left the local map (transferred to LTM, or in a
         # map not connected to the current one), in one frame that does not move with the
         # solutions ("world"): _map_pose(). _T_world_local: the current solution's frame in it.
-        self._map_poses: dict[int, np.ndarray] = {}
+        self._map_poses = PoseTable()
         self._T_world_local = transforms.identity()
         self._inactive_links: set[tuple[int, int]] = set()
         # Graph version of the current local map solution (None: no valid solution to extend),
@@ -257,8 +258,8 @@ class Rtabmap:
         # mode) those of the local map around the robot.
         retrieving = self._local_retrieval(stats.location_id)
         if hypothesis.location_id:
-            retrieving += [n for n in self.memory.retrieval_candidates(hypothesis.location_id)
-                           if n not in retrieving][: self.params.memory.max_retrieved]
+            retrieving += self.memory.retrieval_candidates(hypothesis.location_id, self.params.memory.max_retrieved,
+                                                           exclude=retrieving)
         if retrieving:
             stats.retrieved = len(self.memory.retrieve(retrieving))
             self._wm_changed |= bool(stats.retrieved)
@@ -436,8 +437,7 @@ class Rtabmap:
         leave the local map's state too: what :meth:`local_map` returns names only nodes in
         memory, also when the next optimisation fails and the last solution is kept.
 
-        Transferred nodes keep their last optimised pose in ``_map_poses`` (16 floats a node, as
-        the graph kept for every node): an old map whose nodes come back from LTM is aligned with
+        Transferred nodes keep their last optimised pose in ``_map_poses`` (a 3x4 row a node): an old map whose nodes come back from LTM is aligned with
         them for a merge."""
         for node in nodes:
             pose = self._optimized.pop(node, None)
@@ -587,8 +587,8 @@ class Rtabmap:
         separation = self.params.graph.merge_min_separation
         if separation <= 0 or memory.signatures[link.from_id].T_odom_base is None:
             return True
-        old_map = memory.graph.component(link.to_id)
-        if link.from_id in old_map:
+        old_maps = memory.connected_maps(memory.map_ids[link.to_id])
+        if memory.map_id in old_maps:
             return self._fits_kept_poses(link, separation)
         signatures = memory.signatures
         # Candidates whose nodes left WM cannot be compared (their odometry pose is in LTM).
@@ -599,7 +599,7 @@ class Rtabmap:
         agreeing: list[Link] = []
         apart = 0.0
         for held in self._merge_candidates:
-            if held.to_id not in old_map:
+            if memory.map_ids[held.to_id] not in old_maps:
                 continue
             old_poses = self._old_map_poses(held.to_id, link.to_id)
             if old_poses is None:
@@ -615,7 +615,7 @@ class Rtabmap:
                                        np.linalg.norm(old_poses[0][:3, 3] - old_poses[1][:3, 3])))
         if apart >= separation and len(agreeing) + 1 >= self.params.graph.merge_min_loop_closures:
             # The old map's kept poses, moved into the current map's placement by this link.
-            aligned = {n: self._T_world_local @ T for n, T in self._aligned_old_map(link, old_map).items()}
+            aligned = {n: self._T_world_local @ T for n, T in self._aligned_old_map(link, old_maps).items()}
             conflict = self._scan_conflict([link] + agreeing, aligned, new_pose)
             if conflict > self.params.graph.merge_max_conflict:
                 log.info("loop closure %d -> %d and %d held would merge maps %d and %d, but on %.0f %% of the "
@@ -648,7 +648,7 @@ class Rtabmap:
         to compare (no scans)."""
         memory = self.memory
         current_map = memory.map_ids.get(links[0].from_id)
-        current = {n: self._map_pose(n) for n, m in memory.map_ids.items() if m == current_map}
+        current = {n: self._map_pose(n) for n in memory.map_ids.id_range(current_map)}
         current = {n: T for n, T in current.items() if T is not None}
         if new_pose is not None:
             current[links[0].from_id] = self._T_world_local @ new_pose
@@ -700,11 +700,14 @@ class Rtabmap:
                  link.from_id, link.to_id, off, link.to_id, separation)
         return False
 
-    def _aligned_old_map(self, link: Link, old_map: set[int]) -> dict[int, np.ndarray]:
-        """The old map's last optimised poses, moved so ``link`` holds exactly from the new node's
-        pose in the current local map. The new node is not optimised yet (verification comes
-        first): its pose is chained by odometry from the session's newest optimised node."""
-        old_poses = {n: self._map_poses[n] for n in old_map if n in self._map_poses}  # not in the local map
+    def _aligned_old_map(self, link: Link, old_maps: set[int]) -> dict[int, np.ndarray]:
+        """The last optimised poses of the old maps' nodes, moved so ``link`` holds exactly from
+        the new node's pose in the current local map. The new node is not optimised yet
+        (verification comes first): its pose is chained by odometry from the session's newest
+        optimised node."""
+        old_poses = {}  # not in the local map
+        for m in old_maps:
+            old_poses.update(self._map_poses.items_in(self.memory.map_ids.id_range(m)))
         T_from = self._new_node_pose(link.from_id)
         if link.to_id not in old_poses or T_from is None:
             return {}

@@ -246,9 +246,9 @@ def test_an_old_sessions_kept_poses_are_not_rewritten_by_a_later_sessions_local_
     rtabmap = Rtabmap(Params(), tmp_path / "frames.db")
     memory = rtabmap.memory
     for node in (1, 2, 3):
-        memory.map_ids[node] = 0
+        memory.map_ids.add(node, 0)
     for node in (10, 11):
-        memory.map_ids[node] = 1
+        memory.map_ids.add(node, 1)
     truth = {n: transforms.from_xy_yaw(1.0 * n, 0.0, 0.0) for n in (1, 2, 3, 10, 11)}
     memory.map_id = 0
     rtabmap._optimized = {n: truth[n] for n in (1, 2, 3)}
@@ -330,7 +330,7 @@ def test_a_loop_closure_to_a_joined_session_far_from_its_kept_pose_is_rejected(t
     joined to the local map only through it). A true one is added."""
     rtabmap = _two_corridor_sessions(tmp_path)
     try:
-        rtabmap._map_poses = {1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)}  # session 0
+        rtabmap._map_poses.update({1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)})  # session 0
         rtabmap._optimized = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(25)}
         rtabmap.memory.add_loop_closure(_inter_link(37, 7))  # the sessions are joined
         assert rtabmap._merge_allows(_inter_link(55, 25, error_xy=(15.0, 0.0))) is False
@@ -399,7 +399,7 @@ def test_a_map_merge_the_scans_contradict_is_refused(tmp_path):
         for k in range(30):
             memory.signatures[1 + k].scan = _corridor_scan(0.5 * k, 0.0)
             memory.signatures[31 + k].scan = _corridor_scan(0.5 * k, 0.5)
-        rtabmap._map_poses = {1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)}  # session 0
+        rtabmap._map_poses.update({1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)})  # session 0
         rtabmap._optimized = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(25)}
         look_alikes = [_inter_link(a, b, error_xy=(15.0, 0.0)) for a, b in ((35, 5), (41, 11), (47, 17))]
         assert [rtabmap._merge_allows(link) for link in look_alikes] == [False, False, False]
@@ -434,7 +434,7 @@ def test_a_part_of_the_map_coming_back_into_the_local_map_starts_at_its_kept_pos
         # The world frame of the kept poses is not the local map's: the solutions' frames move.
         rtabmap._T_world_local = transforms.from_xy_yaw(3.0, -2.0, 0.7)
         to_local = transforms.inverse(rtabmap._T_world_local)
-        rtabmap._map_poses = {n: truth[n] for n in range(1, 31) if n in memory.signatures}
+        rtabmap._map_poses.update({n: truth[n] for n in range(1, 31) if n in memory.signatures})
         rtabmap._optimized = {n: to_local @ truth[n] for n in range(31, 56)}
         memory.add_loop_closure(_inter_link(33, 3))
         poses, _ = rtabmap._optimize_component(55)

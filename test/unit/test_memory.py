@@ -11,7 +11,7 @@ import pytest
 
 from rtabmap_ros2.core.database import Database
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Link, LinkType, default_information
+from rtabmap_ros2.core.graph import Graph, Link, LinkType, default_information
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.signature import Signature
@@ -278,3 +278,72 @@ def test_transfer_takes_equal_weights_from_the_session_holding_most_of_wm(tmp_pa
     memory.words_added = 0
     # Map 1 holds 5 of WM's 7, map 0 two: 3 go from map 1 (its oldest), then one from each.
     assert memory.transfer(protected=set(), locations=5, balance_words=False) == [3, 4, 5, 1, 6]
+
+
+def _candidates_on_the_whole_graph(graph: Graph, memory: Memory, hypothesis: int) -> list[int]:
+    """Reference for retrieval_candidates: the whole graph in RAM (what the memory held before
+    LTM links went to the database only)."""
+    reach = memory.params.bayes.neighborhood
+    time_hops = graph.hops_from(hypothesis, reach, types=(LinkType.NEIGHBOR,))
+    all_hops = graph.hops_from(hypothesis, reach)
+    first = sorted((n for n in time_hops if n not in memory.signatures), key=lambda n: (time_hops[n], n))
+    rest = sorted((n for n in all_hops if n not in memory.signatures and n not in time_hops),
+                  key=lambda n: (all_hops[n], n))
+    return first + rest
+
+
+def test_ltm_links_leave_ram_and_come_back_with_retrieval(tmp_path, descriptors):
+    """Links between two LTM locations are in the database only (RAM stays flat once WM stops
+    growing); the retrieval search reads them there and finds what the whole graph gives."""
+    memory = filled(tmp_path, descriptors, {n: 0 for n in range(1, 13)})  # 14 nodes, STM 13-14
+    memory.add_link(Link(12, 3, LinkType.LOOP_INTRA))
+    memory.add_link(Link(9, 2, LinkType.LOOP_INTRA))
+    memory.commit()
+    memory.join()
+    moved = memory.transfer(protected={1, 6, 12}, locations=8, balance_words=False)
+    assert moved == [2, 3, 4, 5, 7, 8, 9, 10]
+    memory.commit()
+    memory.join()
+    # In RAM: links touching memory (5-6, 6-7, 10-11, 12-3, 1-2); not 3-4 nor 9-2.
+    assert memory.graph.link(3, 4) is None and memory.graph.link(9, 2) is None and memory.graph.link(8, 9) is None
+    assert all(memory.graph.link(a, b) is not None for a, b in ((5, 6), (6, 7), (10, 11), (12, 3), (1, 2)))
+    assert 8 not in memory.graph and 9 not in memory.graph
+    assert memory.ltm_size == 8
+    whole = Graph(memory.db.load_links())
+    for hypothesis in (1, 6, 11, 12):
+        expected = _candidates_on_the_whole_graph(whole, memory, hypothesis)
+        assert memory.retrieval_candidates(hypothesis) == expected
+        for limit in (1, 2, 3):
+            assert memory.retrieval_candidates(hypothesis, limit) == expected[:limit]
+        assert memory.retrieval_candidates(hypothesis, 2, exclude=expected[:1]) == expected[1:3]
+    # 6's time neighbours in LTM: 5, 7 (1 hop), 4, 8 (2 hops), 3, 9 (3 hops)...
+    assert memory.retrieval_candidates(6)[:6] == [5, 7, 4, 8, 3, 9]
+    # A retrieved location's links come back, LTM ends included, as stored.
+    assert memory.retrieve([9]) == [9]
+    for other in (8, 10, 2):
+        stored = next(l for l in memory.db.load_links([9]) if {l.from_id, l.to_id} == {9, other})
+        np.testing.assert_array_equal(memory.graph.link(stored.from_id, stored.to_id).T_from_to, stored.T_from_to)
+
+
+def test_sessions_joined_by_inter_session_loop_closures(tmp_path, descriptors):
+    """connected_maps: the sessions of a map id's connected component, following inter-session
+    loop closures as they are added and removed, and after reopening."""
+    memory = make_memory(tmp_path, stm_size=2)
+    for node in range(1, 10):
+        if node in (4, 7):
+            memory.map_id += 1  # sessions 0: 1-3, 1: 4-6, 2: 7-9
+            memory.flush_stm()
+        add(memory, node, descriptors())
+    assert [memory.map_ids[n] for n in (1, 3, 4, 6, 7, 9)] == [0, 0, 1, 1, 2, 2]
+    assert memory.connected_maps(2) == {2}
+    memory.add_link(Link(8, 2, LinkType.LOOP_INTER))
+    assert memory.connected_maps(0) == {0, 2} and memory.connected_maps(1) == {1}
+    memory.add_link(Link(9, 5, LinkType.LOOP_INTER))
+    assert memory.connected_maps(1) == {0, 1, 2}
+    memory.remove_link(8, 2)
+    assert memory.connected_maps(0) == {0}
+    memory.close()
+    reopened = Memory(Params(), Database(tmp_path / "m.db"), binary_descriptors=True)
+    assert reopened.connected_maps(1) == {1, 2} and reopened.map_id == 3
+    assert reopened.ltm_size == 0 and reopened.map_ids[5] == 1
+    reopened.close()

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rtabmap_ros2.core.graph import Graph
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.rtabmap import Rtabmap
 from rtabmap_ros2.core.sensor import SensorFrame
@@ -141,9 +142,11 @@ def test_small_time_threshold_bounds_wm_and_retrieval_brings_back_neighbours(tmp
         original, candidates = memory.retrieve, memory.retrieval_candidates
         hypothesis = {}
 
-        def spy_candidates(hypothesis_id):
-            hypothesis.update(id=hypothesis_id, hops=memory.graph.hops_from(hypothesis_id, params.bayes.neighborhood))
-            return candidates(hypothesis_id)
+        def spy_candidates(hypothesis_id, *args, **kwargs):
+            # The whole graph (LTM links are in the database only).
+            whole = Graph(memory.db.load_links())
+            hypothesis.update(id=hypothesis_id, hops=whole.hops_from(hypothesis_id, params.bayes.neighborhood))
+            return candidates(hypothesis_id, *args, **kwargs)
 
         def spy(ids):
             ids = original(ids)
