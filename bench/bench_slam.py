@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+from array import array
 import json
 import logging
 import os
@@ -58,7 +59,7 @@ RSS_EVERY = 100  # frames between memory samples
 LOW_TIME_THRESHOLD_MS = 100.0
 LONG_TIME_THRESHOLD_MS = 200.0
 STATS_KEPT = ("process_time_ms", "wm_size", "local_map_size", "retrieved", "transferred", "loop_closure_id",
-              "loop_closure_type", *(f"time_{k}_ms" for k in TIMING_KEYS))
+              *(f"time_{k}_ms" for k in TIMING_KEYS))
 TOP_SPIKES = 12  # the slowest frames, each with its step times (what to look at when max pTime is over)
 FALSE_LOOP_DISTANCE_M = 1.0
 FALSE_LOOP_ANGLE_RAD = np.deg2rad(30.0)
@@ -177,16 +178,38 @@ def odometry_ate(gmap, gt: Trajectory) -> dict:
     return {"rmse_m": float(np.sqrt(sq / max(n, 1))), "per_session_m": per}
 
 
+class FrameColumns:
+    """The per-frame figures the report needs, a float64 array per column (8 bytes a value): the
+    benchmark's own memory counts in the RSS it reports (10,000 dict rows weighed ~10 MB)."""
+
+    def __init__(self, keys: tuple[str, ...]) -> None:
+        self._columns = {k: array("d") for k in keys}
+
+    def append(self, row: dict) -> None:
+        for k, column in self._columns.items():
+            column.append(float(row[k]))
+
+    def __len__(self) -> int:
+        return len(next(iter(self._columns.values())))
+
+    def column(self, key: str) -> np.ndarray:
+        return np.frombuffer(self._columns[key], dtype=np.float64)
+
+    def row(self, i: int) -> dict:
+        return {k: (int(c[i]) if c[i].is_integer() and not k.endswith("_ms") else c[i]) for k, c in self._columns.items()}
+
+
 def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_dir: Path, label: str) -> dict:
     """Map ``bags`` in one memory, export, evaluate."""
-    stats_rows: list[dict] = []
+    stats_rows = FrameColumns(STATS_KEPT)
+    loop_types: dict[int, str] = {}  # frame -> type of its loop closure
     loops: list[dict] = []
-    node_stamp: dict[int, int] = {}
+    node_stamp = array("q")  # location id -> stamp (ns), -1 where none
     memory_samples: list[dict] = []  # every RSS_EVERY frames: frame, WM size, RSS and where it is
     retrieved_per_session: dict[int, int] = {}
 
-    cpu_marks = [time.thread_time()]  # main thread CPU at each frame's end: CPU per frame
-    wall_marks = [time.perf_counter()]  # and wall time: a frame whose wall time is far above its CPU time waited
+    cpu_marks = array("d", [time.thread_time()])  # main thread CPU at each frame's end: CPU per frame
+    wall_marks = array("d", [time.perf_counter()])  # and wall time: a frame whose wall time is far above its CPU time waited
     # CPython's full (generation 2) garbage collections: 40-135 ms each on these runs. They run
     # between frames (Rtabmap.process defers them), out of pTime but in the throughput.
     full_gc_ms: list[float] = []
@@ -204,17 +227,18 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
     def on_stats(s) -> None:
         cpu_marks.append(time.thread_time())
         wall_marks.append(time.perf_counter())
-        # Only what is reported: 10,000 full rows weigh ~20 MB, which the RSS figure would count.
-        row = s.to_dict()
-        stats_rows.append({k: row[k] for k in STATS_KEPT})
+        stats_rows.append(s.to_dict())
         if len(stats_rows) % RSS_EVERY == 0:
             memory_samples.append({"frame": len(stats_rows), "wm_size": s.wm_size, "rss_mb": round(rss_mb(), 1),
                                    **memory_breakdown_mb()})
         if s.location_id:
+            node_stamp.extend([-1] * (s.location_id + 1 - len(node_stamp)))
             node_stamp[s.location_id] = s.stamp_ns
         if s.loop_closure_id:
+            loop_types[len(stats_rows) - 1] = s.loop_closure_type
+            old_stamp = node_stamp[s.loop_closure_id] if s.loop_closure_id < len(node_stamp) else -1
             loops.append({"stamp_ns": s.stamp_ns, "location_id": s.location_id, "old_id": s.loop_closure_id,
-                          "old_stamp_ns": node_stamp.get(s.loop_closure_id, -1), "type": s.loop_closure_type})
+                          "old_stamp_ns": old_stamp, "type": s.loop_closure_type})
 
     datasets = [(b.name, BagDataset(b, sync=params.sync)) for b in bags]
     usage0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -248,7 +272,7 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
     gmap = load_global_map(db, params)
     est = read_tum(out_dir / "poses.txt")
     result_ate = ate(est, gt)
-    ptime = np.array([r["process_time_ms"] for r in stats_rows])
+    ptime = stats_rows.column("process_time_ms")
     wm_per_session: dict[int, int] = {}
     for n, m in gmap.map_ids.items():
         wm_per_session[m] = wm_per_session.get(m, 0) + int(gmap.in_wm[n])
@@ -275,14 +299,15 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
                      if params.memory.time_threshold_ms > 0 else None,
                      "over_T": int(np.sum(ptime > params.memory.time_threshold_ms))
                      if params.memory.time_threshold_ms > 0 else None},
-        "time_medians_ms": {k: float(np.median([r[f"time_{k}_ms"] for r in stats_rows])) for k in TIMING_KEYS},
-        "time_p95_ms": {k: float(np.percentile([r[f"time_{k}_ms"] for r in stats_rows], 95)) for k in TIMING_KEYS},
+        "time_medians_ms": {k: float(np.median(stats_rows.column(f"time_{k}_ms"))) for k in TIMING_KEYS},
+        "time_p95_ms": {k: float(np.percentile(stats_rows.column(f"time_{k}_ms"), 95)) for k in TIMING_KEYS},
         "full_gc_ms": {"count": len(full_gc_ms), "median": float(np.median(full_gc_ms)) if full_gc_ms else 0.0,
                        "max": max(full_gc_ms, default=0.0)},
         # With the main thread's CPU and wall time from the previous frame's end to this one's
         # (features, transfer and anything between frames included).
         "ptime_spikes": [{"frame": int(i) + 1, **{k: (round(v, 1) if isinstance(v, float) else v)
-                                                  for k, v in stats_rows[i].items()},
+                                                  for k, v in stats_rows.row(int(i)).items()},
+                          "loop_closure_type": loop_types.get(int(i), ""),
                           "main_thread_cpu_ms": round(float(cpu_ms[i]), 1), "wall_ms": round(float(wall_ms[i]), 1)}
                          for i in np.argsort(-ptime)[:TOP_SPIKES]],
         "sessions": [{"map_id": s.map_id, "source": s.source, "frames": s.frames, "nodes": s.nodes,
@@ -291,9 +316,9 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
                       "p95_ptime_ms": round(float(np.percentile(s.process_times_ms, 95)), 1),
                       "wm_size_end": s.wm_size} for s in sessions],
         "nodes": summary["nodes"], "wm_size": summary["nodes_in_wm"],
-        "wm_max": int(max(r["wm_size"] for r in stats_rows)),
-        "retrieved": int(sum(r["retrieved"] for r in stats_rows)),
-        "transferred": int(sum(r["transferred"] for r in stats_rows)),
+        "wm_max": int(stats_rows.column("wm_size").max()),
+        "retrieved": int(stats_rows.column("retrieved").sum()),
+        "transferred": int(stats_rows.column("transferred").sum()),
         "retrieved_per_session": [retrieved_per_session.get(m, 0) for m in sorted(wm_per_session)],
         "memory": memory_summary(memory_samples),
         "wm_per_session": [wm_per_session.get(m, 0) for m in sorted(wm_per_session)],
