@@ -6,7 +6,10 @@
   vocabulary.
 * LTM: the SQLite database. Every location is written there when created (so a killed process
   loses at most the frame in flight); *transfer* (Alg. 4) only drops a location from RAM and from
-  the vocabulary, *retrieval* (Alg. 3) brings it back.
+  the vocabulary, *retrieval* (Alg. 3) brings it back. RAM keeps of an LTM location only its
+  session (id ranges) and, in SLAM mode, its kept pose (``node_tables``); its links to other LTM
+  locations are read from the database when a graph search (retrieval, the Bayes filter's
+  neighbourhoods) walks through LTM.
 
 All database writes of a frame go in one :class:`WriteBatch` committed by the background writer
 (Alg. 1 line 17 joins it at the next frame).
