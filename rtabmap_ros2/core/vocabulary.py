@@ -78,6 +78,9 @@ logger = logging.getLogger(__name__)
 
 # Initial capacity (words) of the descriptor buffer; it doubles when full.
 INITIAL_CAPACITY = 4096
+# A word's dict in the inverted index is copied into a smaller one when it shrinks to a power of
+# two from this size on (remove_references).
+_COMPACT_MIN = 8
 # Smallest vocabulary an IVF is trained on when index="ivf" (below it the flat index is used).
 IVF_MIN_TRAIN_WORDS = 1000
 # IVF lists: IVF_LISTS_PER_SQRT * sqrt(words at training). bench_vocabulary.py, 200 k ORB words:
@@ -596,6 +599,12 @@ class Vocabulary:
                 locations[location_id] = remaining
             else:
                 del locations[location_id]
+                n = len(locations)
+                if n >= _COMPACT_MIN and n & (n - 1) == 0:
+                    # A dict never gives back its table: shrinking through a power of two, it is
+                    # copied into one sized for what is left (else each word's dict stays at its
+                    # most-shared size, and RAM creeps up at a constant WM).
+                    locations = shared[word] = dict(locations)
             if not locations:
                 del shared[word]
                 orphans.append(word)

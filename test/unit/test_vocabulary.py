@@ -165,6 +165,19 @@ def test_references_and_orphans(vocab):
     assert vocab.references(6) == {}
 
 
+def test_a_word_seen_by_fewer_locations_gives_its_memory_back(vocab):
+    """A dict keeps its largest table: the inverted index copies a word's dict as it shrinks, so
+    RAM follows what WM holds now, not the most it ever shared a word."""
+    import sys
+
+    for location in range(1, 201):
+        vocab.add_references(location, np.array([7]))
+    for location in range(1, 197):
+        vocab.remove_references(location, np.array([7]))
+    assert vocab.references(7) == {197: 1, 198: 1, 199: 1, 200: 1}
+    assert sys.getsizeof(vocab._shared[7]) <= sys.getsizeof(dict.fromkeys(range(8)))
+
+
 def test_remove_words_drops_their_references(vocab, rng):
     ids, _ = vocab.quantize(random_binary(rng, 10))
     vocab.add_references(3, ids)
