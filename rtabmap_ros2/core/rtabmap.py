@@ -437,8 +437,8 @@ class Rtabmap:
         leave the local map's state too: what :meth:`local_map` returns names only nodes in
         memory, also when the next optimisation fails and the last solution is kept.
 
-        Transferred nodes keep their last optimised pose in ``_map_poses`` (a 3x4 row a node): an old map whose nodes come back from LTM is aligned with
-        them for a merge."""
+        Transferred nodes keep their last optimised pose in ``_map_poses`` (a 3x4 row a node):
+        an old map whose nodes come back from LTM is aligned with them for a merge."""
         for node in nodes:
             pose = self._optimized.pop(node, None)
             if not transferred_to_ltm:
