@@ -799,14 +799,16 @@ class Database:
             sql += (" WHERE from_id IN (SELECT value FROM json_each(?1))"
                     " OR to_id IN (SELECT value FROM json_each(?1))")
             params = (json.dumps([int(i) for i in node_ids]),)
-        links = []
-        for a, b, kind, T, info in self._query(sql, params):
-            try:
-                link_type = LinkType(kind)
-            except ValueError as e:
-                raise DatabaseError(f"link {a}->{b} in {self.path} has unknown type {kind!r}") from e
-            links.append(Link(a, b, link_type, _transform(T), np.frombuffer(info, np.float64).reshape(6, 6).copy()))
-        return links
+        return [Link(a, b, self._link_type(a, b, kind), _transform(T),
+                     np.frombuffer(info, np.float64).reshape(6, 6).copy())
+                for a, b, kind, T, info in self._query(sql, params)]
+
+    def _link_type(self, a: int, b: int, kind: str) -> LinkType:
+        """The LinkType spelled ``kind`` (DatabaseError naming the link when there is none)."""
+        try:
+            return LinkType(kind)
+        except ValueError as e:
+            raise DatabaseError(f"link {a}->{b} in {self.path} has unknown type {kind!r}") from e
 
     def link_ends(self, node_ids: Iterable[int]) -> list[tuple[int, int, LinkType]]:
         """(node, other end, type) of every link of the nodes ``node_ids`` (either orientation):
@@ -815,10 +817,7 @@ class Database:
         rows = self._query("SELECT from_id, to_id, type FROM links WHERE from_id IN (SELECT value FROM json_each(?1))"
                            " UNION ALL SELECT to_id, from_id, type FROM links"
                            " WHERE to_id IN (SELECT value FROM json_each(?1))", (ids,))
-        try:
-            return [(a, b, LinkType(kind)) for a, b, kind in rows]
-        except ValueError as e:
-            raise DatabaseError(f"a link in {self.path} has an unknown type ({e})") from e
+        return [(a, b, self._link_type(a, b, kind)) for a, b, kind in rows]
 
     def first_node_of_maps(self) -> dict[int, int]:
         """Map id -> its first node id (sessions are ranges of node ids)."""

@@ -102,10 +102,9 @@ class Memory:
         """Map ids joined to ``map_id`` by inter-session loop closures (itself included): the
         sessions of its connected component (each session is connected by its neighbour links)."""
         adjacent: dict[int, list[int]] = {}
-        for (a, b), count in self.session_links.items():
-            if count > 0:
-                adjacent.setdefault(a, []).append(b)
-                adjacent.setdefault(b, []).append(a)
+        for a, b in self.session_links:  # pairs with at least one link (_count_session_link)
+            adjacent.setdefault(a, []).append(b)
+            adjacent.setdefault(b, []).append(a)
         found = {map_id}
         stack = [map_id]
         while stack:
@@ -394,7 +393,7 @@ class Memory:
         found: list[int] = []
         for sources in (nearest, found):
             for node in sources:  # ``found`` grows while its neighbours are looked at
-                for other in sorted(self._adjacent([node], None), reverse=True):
+                for other in sorted(self.neighbors(node), reverse=True):
                     if len(found) >= limit:
                         return found
                     if other not in self.signatures and other not in found:

@@ -67,10 +67,6 @@ class SessionIds:
                 return range(self._starts[k], end)
         return range(0)
 
-    def map_ids(self) -> list[int]:
-        """Every map id that has nodes, in creation order."""
-        return list(self._maps)
-
 
 class PoseTable:
     """Node id -> 4x4 rigid pose, stored as a 3x4 float64 row per id (ids are small and dense)."""

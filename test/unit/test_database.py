@@ -165,6 +165,18 @@ def test_links_round_trip_and_replace(db, random_se3):
     assert {link.key() for link in db.load_links(node_ids=[2])} == {(1, 2)}
 
 
+def test_link_ends_and_a_link_of_unknown_type(db, random_se3):
+    """The graph search's reader gives each link from the asked node's side; a link whose type is
+    not one we write (a damaged or foreign database) is an error naming it, from either reader."""
+    db.write(WriteBatch(links=[Link(1, 2, LinkType.NEIGHBOR, random_se3()), Link(5, 1, LinkType.LOOP_INTER)]))
+    assert sorted(db.link_ends([1])) == [(1, 2, LinkType.NEIGHBOR), (1, 5, LinkType.LOOP_INTER)]
+    assert db.link_ends([2, 7]) == [(2, 1, LinkType.NEIGHBOR)]
+    db.conn.execute("UPDATE links SET type = 'teleport' WHERE from_id = 5")
+    for read in (lambda: db.load_links(), lambda: db.link_ends([1])):
+        with pytest.raises(DatabaseError, match="unknown type 'teleport'"):
+            read()
+
+
 def test_weights_in_wm_and_node_infos(db, rng):
     sigs = [make_signature(rng, i, map_id=i // 3) for i in range(1, 6)]
     db.write(WriteBatch(locations=[(s, None) for s in sigs]))
