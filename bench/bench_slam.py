@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-from array import array
 import json
 import logging
 import os
@@ -39,6 +38,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from array import array
 from pathlib import Path
 
 import numpy as np

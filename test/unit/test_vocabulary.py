@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import sys
 import threading
 import weakref
 from collections import Counter
@@ -168,8 +169,6 @@ def test_references_and_orphans(vocab):
 def test_a_word_seen_by_fewer_locations_gives_its_memory_back(vocab):
     """A dict keeps its largest table: the inverted index copies a word's dict as it shrinks, so
     RAM follows what WM holds now, not the most it ever shared a word."""
-    import sys
-
     for location in range(1, 201):
         vocab.add_references(location, np.array([7]))
     for location in range(1, 197):
