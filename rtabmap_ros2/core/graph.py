@@ -14,6 +14,8 @@ from enum import Enum
 from typing import Iterable, Mapping
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
 
 from rtabmap_ros2.core import transforms
 
@@ -179,17 +181,16 @@ class Graph:
 
 
 def connected_components(node_ids: Iterable[int], links: Iterable[Link]) -> list[set[int]]:
-    """Connected components of a node set, largest first."""
-    graph = Graph(links)
-    remaining = set(node_ids)
-    for node in remaining:
-        graph.add_node(node)
-    components = []
-    while remaining:
-        start = next(iter(remaining))
-        comp = graph.component(start, allowed=remaining)
-        components.append(comp)
-        remaining -= comp
+    """Connected components of a node set (through links with both ends in it), largest first."""
+    ids = list(dict.fromkeys(node_ids))
+    index = {n: i for i, n in enumerate(ids)}
+    ends = np.array([(index[link.from_id], index[link.to_id]) for link in links
+                     if link.from_id in index and link.to_id in index], dtype=np.int64).reshape(-1, 2)
+    adjacency = scipy.sparse.coo_matrix((np.ones(len(ends)), (ends[:, 0], ends[:, 1])), shape=(len(ids), len(ids)))
+    count, labels = scipy.sparse.csgraph.connected_components(adjacency, directed=False)
+    components: list[set[int]] = [set() for _ in range(count)]
+    for node, label in zip(ids, labels.tolist()):
+        components[label].add(node)
     components.sort(key=len, reverse=True)
     return components
 
@@ -261,8 +262,13 @@ CONSENSUS_ANGLE_RAD = np.deg2rad(10.0)
 def agree(difference: np.ndarray) -> bool:
     """True when two alignments whose 4x4 ``difference`` (inv(A) @ B) is given agree within
     :data:`CONSENSUS_DISTANCE_M` / :data:`CONSENSUS_ANGLE_RAD` (``_support`` does all pairs at once)."""
-    return bool(np.linalg.norm(difference[:3, 3]) < CONSENSUS_DISTANCE_M
-                and transforms.rotation_angle(difference) < CONSENSUS_ANGLE_RAD)
+    return bool(agree_many(difference[None])[0])
+
+
+def agree_many(differences: np.ndarray) -> np.ndarray:
+    """:func:`agree` of each of (N, 4, 4) ``differences``, as a (N,) bool array."""
+    cos = np.clip((np.trace(differences[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return (np.linalg.norm(differences[:, :3, 3], axis=1) < CONSENSUS_DISTANCE_M) & (np.arccos(cos) < CONSENSUS_ANGLE_RAD)
 
 
 def consensus_guess(root: int, root_pose: np.ndarray, links: list[Link]) -> dict[int, np.ndarray]:

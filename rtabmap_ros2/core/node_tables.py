@@ -14,7 +14,7 @@ links of every node, RAM grew ~2 KB per frame at a constant WM):
 from __future__ import annotations
 
 import bisect
-from typing import Iterator, Optional
+from typing import Iterable, Iterator, Optional
 
 import numpy as np
 
@@ -123,15 +123,13 @@ class PoseTable:
         for node_id, pose in poses.items():
             self[node_id] = pose
 
-    def items_in(self, ids: range) -> dict[int, np.ndarray]:
-        """id -> pose of the ids in ``ids`` that have one."""
-        stop = min(ids.stop, len(self._present))
-        if ids.start >= stop:
-            return {}
-        found = ids.start + np.flatnonzero(self._present[ids.start:stop])
-        rows = self._rows[found]
+    def items_in(self, ids: Iterable[int]) -> dict[int, np.ndarray]:
+        """id -> pose of the ids in ``ids`` that have one (all at once)."""
+        wanted = np.fromiter(ids, dtype=np.int64)
+        wanted = wanted[(wanted >= 0) & (wanted < len(self._present))]
+        found = wanted[self._present[wanted]]
         poses = np.tile(np.eye(4), (len(found), 1, 1))
-        poses[:, :3] = rows
+        poses[:, :3] = self._rows[found]
         return dict(zip(found.tolist(), poses))
 
     def __len__(self) -> int:

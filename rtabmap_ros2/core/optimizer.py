@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import time
 import weakref
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -240,7 +241,7 @@ def _poses_of(values, planar: bool) -> dict[int, np.ndarray]:
 # -- optimisation --------------------------------------------------------------------------------
 
 def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, params: GraphParams,
-             planar: bool) -> OptimizationResult:
+             planar: bool, rejected_before: Collection[tuple[int, int]] = ()) -> OptimizationResult:
     """Optimise a pose graph with the root held at its given pose.
 
     Args:
@@ -251,6 +252,11 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
         root_id: node fixed at its given pose (2014 §II-B: the newest node).
         params: optimiser, iterations, robust settings.
         planar: optimise x, y, yaw only (Pose2); else full SE(3) (Pose3).
+        rejected_before: keys of loop closures a previous solution of this graph rejected
+            (robust mode): they start out of the solution, and the robust rounds re-admit those
+            that agree with it. Without it a re-solve of a local map first solved with every
+            link it had rejected before, which DCS switched off again, then solved a second
+            time without them: two solves where one does.
 
     Returns:
         :class:`OptimizationResult`.
@@ -291,6 +297,12 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
 
     kept = list(used)
     rejected: list[Link] = []
+    if params.robust and rejected_before:
+        out_before = [link for link in used if link.type.is_loop_closure and link.key() in rejected_before]
+        trial = [link for link in used if not (link.type.is_loop_closure and link.key() in rejected_before)]
+        # Only while the rest holds the graph together (a bridge is never dropped).
+        if out_before and len(connected_components(poses.keys(), trial)) == 1:
+            kept, rejected = trial, out_before
     values, iterations = _solve(kept, factors, initial, root_id, poses[root_id], params, planar)
     if params.robust:
         # Robust (DCS) pass: drop loop closures the rest of the graph disagrees with, re-optimise.

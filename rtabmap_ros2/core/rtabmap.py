@@ -35,8 +35,8 @@ from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
 from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid, scan_conflict
-from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, chain_poses, consensus_guess, default_information,
-                                     loop_type)
+from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, agree_many, chain_poses, consensus_guess,
+                                     default_information, loop_type)
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.node_tables import PoseTable
 from rtabmap_ros2.core.optimizer import load_backend, optimize, release
@@ -837,7 +837,8 @@ class Rtabmap:
 
         Loop closures the robust optimiser finds inconsistent stay in the graph, inactive for
         this solution: when later loop closures outvote them they can be right after all (a
-        false inter-session link found first must not make every true one after it look wrong).
+        false inter-session link found first must not make every true one after it look wrong);
+        the next re-solve starts without them and re-admits those its solution agrees with.
         The initial guess is the previous solution (few iterations) unless it contradicts the
         majority of some pair of sessions' loop closures; then sessions are placed by consensus of
         their loop closures, for the same reason. The frame's new loop closures are then checked (RTAB-Map's
@@ -849,7 +850,7 @@ class Rtabmap:
         component = memory.graph.component(root, allowed=memory.signatures)
         links = memory.graph.links_within(component)
         root_pose = memory.signatures[root].T_odom_base
-        self._inactive_links = set()
+        rejected_before, self._inactive_links = self._inactive_links, set()
         if not any(link.type.is_loop_closure for link in links):
             # A tree of neighbour links: chaining them is the optimum. (Re-using the previous
             # poses here fed round-off back every frame: rotations lost orthonormality
@@ -863,7 +864,8 @@ class Rtabmap:
         guess = _warm_start(root, root_pose, memory.graph, component, previous)
         if guess is None or not self._fits_inter_session_majority(guess, links):
             guess = consensus_guess(root, root_pose, links)
-        result = optimize(guess, links, root, self.params.graph, planar=bool(self._planar))
+        result = optimize(guess, links, root, self.params.graph, planar=bool(self._planar),
+                          rejected_before=rejected_before)
         self._inactive_links = {link.key() for link in result.rejected}
         fresh = [(link, before) for link, before in self._new_loops
                  if link.from_id in component and link.to_id in component]
@@ -893,23 +895,23 @@ class Rtabmap:
         started tens of metres off, the optimiser settled there, and the next 134 true loop
         closures were rejected against the kept poses, 30-110 m away (30 sessions, WM 2,700)."""
         to_local = transforms.inverse(self._T_world_local)
-        poses = {n: to_local @ self._map_poses[n] for n in nodes if n in self._map_poses}
+        kept = self._map_poses.items_in(n for n in nodes if n not in self._optimized)
+        poses = dict(zip(kept, np.einsum("ij,njk->nik", to_local, np.array(list(kept.values())).reshape(-1, 4, 4))))
         poses.update((n, self._optimized[n]) for n in nodes if n in self._optimized)
         return poses
 
     def _fits_inter_session_majority(self, poses: dict[int, np.ndarray], links: list[Link]) -> bool:
-        """True when, for every pair of sessions, most of their loop closures hold in ``poses``."""
-        held: dict[tuple[int, int], list[int]] = {}
+        """True when, for every pair of sessions, most of their loop closures hold in ``poses``
+        (each within graph.agree's distance and angle)."""
+        inter = [link for link in links if link.type is LinkType.LOOP_INTER]
+        if not inter:
+            return True
         map_ids = self.memory.map_ids
-        for link in links:
-            if link.type is not LinkType.LOOP_INTER:
-                continue
-            pair = tuple(sorted((map_ids[link.from_id], map_ids[link.to_id])))
-            ok = agree(link.residual(poses[link.from_id], poses[link.to_id]))
-            counts = held.setdefault(pair, [0, 0])
-            counts[0] += ok
-            counts[1] += 1
-        return all(2 * ok >= total for ok, total in held.values())
+        pairs = np.array([sorted((map_ids[link.from_id], map_ids[link.to_id])) for link in inter])
+        held = agree_many(_residuals(poses, inter))
+        _, pair_index = np.unique(pairs, axis=0, return_inverse=True)
+        pair_index = pair_index.reshape(-1)
+        return bool(np.all(2 * np.bincount(pair_index, weights=held) >= np.bincount(pair_index)))
 
     def _update_local_map(self, newest: int) -> bool:
         """Optimise the local map rooted at the newest node (2014 §II-B, C).

@@ -33,6 +33,8 @@ def test_pose_table_keeps_rigid_poses_by_node_id():
     assert set(table.items_in(range(0, 10))) == {3, 5}
     np.testing.assert_array_equal(table.items_in(range(4, 2001))[5], poses[5])
     assert table.items_in(range(6, 2000)) == {}
+    assert set(table.items_in([2000, 4, -1, 10**6, 3])) == {2000, 3}  # any ids, absent ones skipped
+    assert table.items_in(n for n in ()) == {}
     table[5] = poses[3]  # replaced, not added
     assert len(table) == 3
     np.testing.assert_array_equal(table.pop(5), poses[3])

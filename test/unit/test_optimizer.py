@@ -111,6 +111,26 @@ def test_robust_rejects_wrong_loop_closure(rng):
     assert dev_plain > 0.3
 
 
+def test_loop_closures_rejected_before_start_out_and_true_ones_come_back(rng):
+    """A re-solve told which loop closures the last solution rejected starts without them: the
+    false one stays rejected in fewer iterations, at the same solution; a true one passed as
+    rejected is re-admitted."""
+    truth, odom, links = _square_loop_graph(rng)
+    root = max(odom)
+    wrong = Link(3, 45, LinkType.LOOP_INTRA, transforms.from_xy_yaw(0.5, 0.0, 0.0), default_information(1e-3))
+    first = optimize(odom, links + [wrong], root, GraphParams(robust=True), planar=True)
+    again = optimize(odom, links + [wrong], root, GraphParams(robust=True), planar=True,
+                     rejected_before={wrong.key()})
+    assert [l.key() for l in again.rejected] == [wrong.key()]
+    assert again.iterations < first.iterations
+    assert max(np.linalg.norm(again.poses[k][:3, 3] - first.poses[k][:3, 3]) for k in odom) < 1e-3
+    true = next(l for l in links if l.type is LinkType.LOOP_INTRA)
+    back = optimize(odom, links + [wrong], root, GraphParams(robust=True), planar=True,
+                    rejected_before={wrong.key(), true.key()})
+    assert [l.key() for l in back.rejected] == [wrong.key()]
+    assert max(np.linalg.norm(back.poses[k][:3, 3] - first.poses[k][:3, 3]) for k in odom) < 1e-3
+
+
 @pytest.mark.parametrize("optimizer", ["lm", "gn", "dogleg"])
 def test_optimizers_agree(rng, optimizer):
     truth, odom, links = _square_loop_graph(rng)
