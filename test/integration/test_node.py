@@ -37,6 +37,8 @@ from rtabmap_ros2.ros import conversions as conv  # noqa: E402
 from rtabmap_ros2.ros.node import (  # noqa: E402
     FRAME_QUEUE_SIZE, RtabmapNode, checked_export_path, new_export_folder)
 
+from ros_spin import spinning  # noqa: E402
+
 pytestmark = pytest.mark.ros
 
 DOMAIN_ID = random.randint(1, 99)
@@ -139,8 +141,8 @@ class Harness:
         self.executor = MultiThreadedExecutor(num_threads=4, context=context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.tester)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self._spinning = contextlib.ExitStack()
+        self._spinning.enter_context(spinning(self.executor))
         assert wait_for(self.tester.connected)
 
     def feed(self, frame, stamp_ns=None, **publish) -> dict[str, str]:
@@ -151,8 +153,7 @@ class Harness:
         return self.tester.infos()[-1]
 
     def close(self):
-        self.executor.shutdown()
-        self.thread.join(timeout=10)
+        self._spinning.close()
         self.node.destroy_node()
         self.tester.destroy_node()
 
@@ -437,15 +438,12 @@ def spinning_rig(context, proc: subprocess.Popen):
     tester = SensorRig(context)
     executor = MultiThreadedExecutor(num_threads=2, context=context)
     executor.add_node(tester)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
     try:
-        yield tester
+        with spinning(executor):
+            yield tester
     finally:
         if proc.poll() is None:
             proc.kill()
-        executor.shutdown()
-        thread.join(timeout=10)
         tester.destroy_node()
 
 

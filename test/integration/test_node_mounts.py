@@ -12,7 +12,6 @@ them they are measurably worse. ``map --set`` takes the same two for a bag witho
 from __future__ import annotations
 
 import random
-import threading
 import time
 
 import pytest
@@ -27,6 +26,8 @@ from std_srvs.srv import Trigger  # noqa: E402
 from rtabmap_ros2.io.trajectory import ate, read_tum  # noqa: E402
 from rtabmap_ros2.ros.node import RtabmapNode  # noqa: E402
 from rtabmap_ros2.ros.play import play_bag  # noqa: E402
+
+from ros_spin import spinning  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -59,19 +60,16 @@ def _play_into_node(context, tmp_path, bag, **params) -> tuple[RtabmapNode, floa
     executor = MultiThreadedExecutor(num_threads=3, context=context)
     executor.add_node(node)
     executor.add_node(player)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
     try:
-        stats = play_bag(bag, player, rate=PLAY_RATE, delay_s=1.5)
-        assert not stats.unacknowledged, stats
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and node.frames_processed + node.frames_dropped < node._sync.emitted:
-            time.sleep(0.1)
-        response = node._export_global_map(Trigger.Request(), Trigger.Response())
-        assert response.success, response.message
+        with spinning(executor):
+            stats = play_bag(bag, player, rate=PLAY_RATE, delay_s=1.5)
+            assert not stats.unacknowledged, stats
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and node.frames_processed + node.frames_dropped < node._sync.emitted:
+                time.sleep(0.1)
+            response = node._export_global_map(Trigger.Request(), Trigger.Response())
+            assert response.success, response.message
     finally:
-        executor.shutdown()
-        thread.join(timeout=10)
         player.destroy_node()
         node.destroy_node()
     from pathlib import Path

@@ -25,6 +25,8 @@ from rtabmap_ros2.errors import BagError  # noqa: E402
 from rtabmap_ros2.ros.conversions import stamp_to_ns  # noqa: E402
 from rtabmap_ros2.ros.play import play_bag  # noqa: E402
 
+from ros_spin import spinning  # noqa: E402
+
 pytestmark = pytest.mark.ros
 
 DOMAIN_ID = random.randint(100, 200)
@@ -76,12 +78,9 @@ def receiver(context):
     node = Receiver(context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    yield node
-    executor.shutdown()
+    with spinning(executor):
+        yield node
     node.destroy_node()
-    thread.join(timeout=5)
 
 
 def _wait_for(condition, timeout=10.0):
