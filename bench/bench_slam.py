@@ -53,14 +53,16 @@ from rtabmap_ros2.io.export import export_global_map
 from rtabmap_ros2.io.trajectory import Trajectory, associate, ate, read_tum
 
 REPO = Path(__file__).resolve().parents[1]
-# A loop closure is false when the ground-truth poses of its nodes are farther apart than this.
 RSS_EVERY = 100  # frames between memory samples
+# WM has stopped growing at the first sample it never again exceeds by more than 1 / this ratio.
+WM_PLATEAU_RATIO = 0.99
 # The low-T_time run (memory management must act) and the long run (--long-data, 10,000+ frames).
 LOW_TIME_THRESHOLD_MS = 100.0
 LONG_TIME_THRESHOLD_MS = 200.0
 STATS_KEPT = ("process_time_ms", "wm_size", "local_map_size", "retrieved", "transferred", "loop_closure_id",
               *(f"time_{k}_ms" for k in TIMING_KEYS))
 TOP_SPIKES = 12  # the slowest frames, each with its step times (what to look at when max pTime is over)
+# A loop closure is false when the ground-truth poses of its nodes are farther apart than this.
 FALSE_LOOP_DISTANCE_M = 1.0
 FALSE_LOOP_ANGLE_RAD = np.deg2rad(30.0)
 # A loop closure link is wrong when its transform is farther than this from the ground truth's.
@@ -338,17 +340,23 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
 
 
 def memory_summary(samples: list[dict]) -> dict:
-    """RSS when WM stopped growing (first sample at 95 % of the largest WM), at the middle and at
-    the end, and its growth per frame over the second half (flat: ~0)."""
+    """RSS once WM stopped growing, and its growth from there to the end (flat: ~0).
+
+    WM has stopped growing at the first sample it never again exceeds by more than
+    ``1 / WM_PLATEAU_RATIO`` (its high-water mark, reached for good). A timing-driven cap lowers
+    WM and lets it regrow, and RSS follows WM's high-water mark, so the window starts after the
+    last new high, not at the first time WM came near its maximum."""
     if not samples:
         return {}
-    wm_max = max(x["wm_size"] for x in samples)
-    settled = next(x for x in samples if x["wm_size"] >= 0.95 * wm_max)
-    middle = samples[len(samples) // 2]
-    frames = max(1, samples[-1]["frame"] - middle["frame"])
-    return {"wm_settled_frame": settled["frame"], "rss_mb_settled": settled["rss_mb"],
-            "rss_mb_middle": middle["rss_mb"], "middle_frame": middle["frame"], "rss_mb_end": samples[-1]["rss_mb"],
-            "rss_kb_per_frame_second_half": round(1000.0 * (samples[-1]["rss_mb"] - middle["rss_mb"]) / frames, 1),
+    wm = [x["wm_size"] for x in samples]
+    settled_index = next(i for i in range(len(samples)) if wm[i] >= WM_PLATEAU_RATIO * max(wm[i:]))
+    settled, end = samples[settled_index], samples[-1]
+    frames = end["frame"] - settled["frame"]
+    rss = [x["rss_mb"] for x in samples[settled_index:]]
+    return {"wm_settled_frame": settled["frame"], "rss_mb_settled": settled["rss_mb"], "rss_mb_end": end["rss_mb"],
+            "rss_mb_range_settled": [min(rss), max(rss)],
+            "wm_range_settled": [min(wm[settled_index:]), max(wm[settled_index:])], "settled_frames": frames,
+            "rss_kb_per_frame_settled": round(1000.0 * (end["rss_mb"] - settled["rss_mb"]) / frames, 2) if frames else None,
             "samples": samples}
 
 
@@ -379,9 +387,10 @@ def print_table(results: dict) -> None:
             ("transferred", ("transferred",), None), ("retrieved", ("retrieved",), None),
             ("retrieved per session", ("retrieved_per_session",), None),
             ("RSS when WM settled (MB)", ("memory", "rss_mb_settled"), None),
-            ("RSS at the middle frame (MB)", ("memory", "rss_mb_middle"), None),
+            ("frames since WM settled", ("memory", "settled_frames"), None),
+            ("RSS since WM settled, min / max (MB)", ("memory", "rss_mb_range_settled"), None),
             ("RSS at end (MB)", ("memory", "rss_mb_end"), None),
-            ("RSS growth, second half (KB/frame)", ("memory", "rss_kb_per_frame_second_half"), None),
+            ("RSS growth since WM settled (KB/frame)", ("memory", "rss_kb_per_frame_settled"), None),
             ("local map size", ("local_map_size",), "local_map_size"),
             ("local map per session", ("local_map_per_session",), "local_map_per_session"),
             ("loop closures intra", ("loop_intra",), "loop_intra"),
@@ -458,6 +467,7 @@ def run_parts(args, parser, params: Params, data: Path, gt: Trajectory, bags: li
               work: Path) -> int:
     """Run the ``parts`` with databases and exports in ``work``; write and print the results."""
     results: dict = {"data": str(data), "bags": [b.name for b in bags], "params_overrides": args.overrides,
+                     "malloc_env": {k: v for k, v in os.environ.items() if k.startswith("MALLOC_")},
                      "machine": {"cpus": os.cpu_count(), "load_avg_start": os.getloadavg()}, "paper": PAPER}
     t0 = time.perf_counter()
     out = args.out or REPO / "bench" / "results" / ("slam_quick.json" if args.quick else "slam.json")
