@@ -313,7 +313,9 @@ class GraphParams:
         "agrees on the maps' alignment: perceptual aliasing (look-alike posters, symmetric corridors) "
         "repeats over a few metres, a true overlap does not end there (0 = merge on the first). Once "
         "joined, an inter-session loop closure putting the old node farther than this from its kept pose "
-        "is rejected as a look-alike", "m")
+        "is rejected as a look-alike, and so is a loop closure within the session putting the old node "
+        "farther than this from its pose in the local map (the local map's drift over a loop must stay "
+        "under it)", "m")
     merge_min_loop_closures: int = _p(
         3, "A merge also needs this many loop closures agreeing on the alignment (the new one and held ones): "
         "on the simulated sessions with a small WM, pairs of look-alike loop closures shifted alike along "

@@ -339,6 +339,27 @@ def test_a_loop_closure_to_a_joined_session_far_from_its_kept_pose_is_rejected(t
         rtabmap.close()
 
 
+def test_a_loop_closure_within_the_session_far_from_its_local_map_pose_is_rejected(tmp_path):
+    """Within the session being mapped, a loop closure that puts the old node farther than
+    graph.merge_min_separation from where the session's own local map puts it is a look-alike
+    (seed 5 with WM 300: a poster 33.8 m along a corridor, accepted, bent the session's 64-node
+    local map, and its later true loop closures to other sessions no longer agreed). A true
+    one, a few centimetres off, is added."""
+    rtabmap = _two_corridor_sessions(tmp_path)
+    try:
+        rtabmap._optimized = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(29)}
+        rtabmap._map_poses.update({31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(29)})
+
+        def intra_link(error_x: float) -> Link:
+            # Node 59 (14 m along) -> node 33 (1 m along): 13 m behind, plus the error.
+            return Link(59, 33, LinkType.LOOP_INTRA, transforms.from_xy_yaw(-13.0 + error_x, 0.0, 0.0), ODOM_INFO)
+
+        assert rtabmap._merge_allows(intra_link(12.0)) is False
+        assert rtabmap._merge_allows(intra_link(0.05)) is True
+    finally:
+        rtabmap.close()
+
+
 def test_a_map_merge_waits_for_agreeing_loop_closures_far_enough_apart(tmp_path):
     rtabmap = _two_corridor_sessions(tmp_path)
     try:
