@@ -19,7 +19,7 @@ JOIN_TIMEOUT_S = 10.0
 
 
 @contextlib.contextmanager
-def spinning(executor) -> Iterator[threading.Thread]:
+def spinning(executor) -> Iterator[None]:
     """Spin ``executor`` in a daemon thread for the ``with`` block; then stop the thread, join it
     and shut the executor down (in that order)."""
     stop = threading.Event()
@@ -31,7 +31,7 @@ def spinning(executor) -> Iterator[threading.Thread]:
     thread = threading.Thread(target=spin, daemon=True)
     thread.start()
     try:
-        yield thread
+        yield
     finally:
         stop.set()
         thread.join(timeout=JOIN_TIMEOUT_S)

@@ -348,7 +348,6 @@ def test_a_loop_closure_within_the_session_far_from_its_local_map_pose_is_reject
     rtabmap = _two_corridor_sessions(tmp_path)
     try:
         rtabmap._optimized = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(29)}
-        rtabmap._map_poses.update({31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(29)})
 
         def intra_link(error_x: float) -> Link:
             # Node 59 (14 m along) -> node 33 (1 m along): 13 m behind, plus the error.
