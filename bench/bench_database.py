@@ -16,7 +16,12 @@ Measured (medians over the frames, warm page cache, one process):
 * retrieval: ``load_signatures`` of 2 random stored locations (Alg. 3 loads at most two);
 * blobs: ``load_sensor_blobs`` + decode of one node (map export);
 * load_nodes / load_links of the whole map (global map export), median of 5 calls;
-* file size per node after close (checkpointed, rollback-journal mode).
+* file size per node after close (checkpointed, rollback-journal mode);
+* busy frame: one frame batch through the BackgroundWriter while the main thread runs Python
+  (every statement needs the GIL back from it: database._apply_statements);
+* transfer: every stored location leaving WM at once (a WM cap drop: in_wm and weight of each)
+  through the BackgroundWriter while the main thread runs Python, until the writer is done.
+  Baseline: the same UPDATEs one row at a time (executemany) on a writer thread of their own.
 
 Baseline in the same run, interleaved frame by frame with ours: the same bytes (one frame's blobs
 concatenated) written as ONE row of a one-table SQLite file with the same pragmas, and read back
@@ -37,6 +42,7 @@ import sqlite3
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -54,6 +60,7 @@ RESULTS = Path(__file__).resolve().parent / "results" / "database.json"
 SHARED_RGBD = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd"
 FRAMES = 300
 QUICK_FRAMES = 60
+BUSY_FRAMES = 10
 WORDS_PER_FRAME = 400
 DESCRIPTOR_BYTES = 32  # ORB
 SCAN_BEAMS = 360
@@ -154,6 +161,34 @@ def frame_bytes(batch: WriteBatch) -> bytes:
             + sig.keypoints.tobytes() + sig.points3d.tobytes() + sig.word_ids.tobytes() + sig.scan.ranges.tobytes())
 
 
+def busy_until(done) -> None:
+    """The main thread running Python (as the mapper's graph code does) until ``done()``."""
+    poses = {i: np.eye(4) for i in range(2000)}
+    while not done():
+        sum(float(T[0, 0]) for T in poses.values())
+
+
+def per_row_updates_ms(path: Path, ids) -> float:
+    """Baseline of the transfer: in_wm and weight updated one row at a time (executemany) on a
+    thread of their own while the main thread runs Python."""
+    finished = threading.Event()
+
+    def write() -> None:
+        conn = sqlite3.connect(path)
+        with conn:
+            conn.executemany("UPDATE nodes SET in_wm = ? WHERE id = ?", [(1, i) for i in ids])
+            conn.executemany("UPDATE nodes SET weight = ? WHERE id = ?", [(2, i) for i in ids])
+        conn.close()
+        finished.set()
+
+    start = time.perf_counter()
+    thread = threading.Thread(target=write)
+    thread.start()
+    busy_until(finished.is_set)
+    thread.join()
+    return (time.perf_counter() - start) * 1e3
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help=f"{QUICK_FRAMES} frames instead of {FRAMES}")
@@ -215,7 +250,22 @@ def main(argv: list[str] | None = None) -> int:
             submit_ms.append(timed(writer.submit, batch)[0])
         writer.join()
         background_total_s = time.perf_counter() - start
+        busy_frame_ms = []
+        for i in range(BUSY_FRAMES):
+            batch = make_batch(rng, n_frames + 1 + i, encoded[i], camera)
+            start = time.perf_counter()
+            writer.submit(batch)
+            busy_until(lambda: writer.pending == 0)
+            writer.join()
+            busy_frame_ms.append((time.perf_counter() - start) * 1e3)
+        ids = range(1, n_frames + 1)
+        start = time.perf_counter()
+        writer.submit(WriteBatch(in_wm={i: False for i in ids}, weights={i: 1 for i in ids}))
+        busy_until(lambda: writer.pending == 0)
+        writer.join()
+        transfer_ms = (time.perf_counter() - start) * 1e3
         db.close()
+        base_transfer_ms = per_row_updates_ms(folder / "background.db", ids)
 
     result = {
         "frames": n_frames,
@@ -229,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
         "load_2_signatures_ms": median(retrieval_ms), "load_blobs_decoded_ms": median(blobs_ms),
         "load_nodes_ms": nodes_ms, "load_links_ms": links_ms,
         "file_kib_per_node": file_bytes / n_frames / 1024,
+        "frame_busy_main_ms": median(busy_frame_ms), "transfer_all_busy_main_ms": transfer_ms, "baseline_per_row_transfer_busy_main_ms": base_transfer_ms,
         "baseline_one_row_write_ms": median(base_write_ms), "baseline_one_row_read2_ms": median(base_read_ms),
         "baseline_kib_per_node": base_bytes / n_frames / 1024,
         "load_average_1min": [load_before, os.getloadavg()[0]],
@@ -251,6 +302,9 @@ def main(argv: list[str] | None = None) -> int:
         (f"load_nodes / load_links ({n_frames} nodes)", f"{nodes_ms:.2f} / {links_ms:.2f} ms", ""),
         ("file size per node", f"{result['file_kib_per_node']:.1f} KiB",
          f"baseline {result['baseline_kib_per_node']:.1f} KiB"),
+        ("one frame batch, main thread busy", f"{median(busy_frame_ms):.1f} ms", "BackgroundWriter until done"),
+        (f"transfer {n_frames} locations, main thread busy", f"{transfer_ms:.1f} ms",
+         f"baseline row by row {base_transfer_ms:.1f} ms"),
     ]
     width = max(len(r[0]) for r in rows)
     print(f"database benchmark: {n_frames} frames, {WORDS_PER_FRAME} words/frame, medians "

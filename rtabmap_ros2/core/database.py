@@ -493,14 +493,30 @@ def _apply(conn: sqlite3.Connection, path: Path, rows: _Rows) -> None:
 
 
 def _apply_statements(conn: sqlite3.Connection, rows: _Rows) -> None:
-    ex, many = conn.execute, conn.executemany
+    """The batch's statements, as few as possible: this runs on the writer thread, and every
+    statement (and every row of an executemany) needs the GIL back from the main thread, which
+    holds it while it computes: a frame's batch took 200-250 ms then instead of 2 ms
+    (bench/bench_database.py's transfer row measures the worst case). So empty row lists run
+    nothing, and the many-row inserts and updates are ONE statement over a JSON array each."""
+    ex = conn.execute
+
+    def many(sql: str, rows: list) -> None:
+        if rows:
+            conn.executemany(sql, rows)
+
     many("DELETE FROM links WHERE (from_id = ? AND to_id = ?) OR (from_id = ? AND to_id = ?)", rows.deleted_links)
     # Rehearsal (2013 §III-B) merged these locations into others: remove them and what hangs on them.
     many("DELETE FROM links WHERE from_id = ?1 OR to_id = ?1", rows.deleted_locations)
     for table, column in (("node_words", "node_id"), ("scans", "node_id"), ("cameras", "node_id"),
                           ("sensor_data", "node_id"), ("nodes", "id")):
         many(f"DELETE FROM {table} WHERE {column} = ?", rows.deleted_locations)
-    many("INSERT OR REPLACE INTO words (id, dtype, dim, descriptor) VALUES (?, ?, ?, ?)", rows.words)
+    if rows.words:
+        # The descriptors cut out of one blob (one dtype and size per batch, _word_rows).
+        _, dtype, dim, first = rows.words[0]
+        ex("""INSERT OR REPLACE INTO words (id, dtype, dim, descriptor)
+              SELECT j.value, ?2, ?3, substr(?4, j.key * ?5 + 1, ?5) FROM json_each(?1) AS j""",
+           (json.dumps([row[0] for row in rows.words]), dtype, dim, b"".join(row[3] for row in rows.words),
+            len(first)))
     many("""INSERT INTO maps (id, first_stamp_ns, created_unix_ns) VALUES (?, ?, ?)
             ON CONFLICT(id) DO UPDATE SET first_stamp_ns = min(first_stamp_ns, excluded.first_stamp_ns)""",
          rows.maps)
@@ -527,12 +543,26 @@ def _apply_statements(conn: sqlite3.Connection, rows: _Rows) -> None:
             raise DatabaseError(f"re-quantised words of location {node_id}: {n} word ids for {stored[0]} keypoints")
         ex("UPDATE nodes SET word_ids = ? WHERE id = ?", (blob, node_id))
     many("DELETE FROM node_words WHERE node_id = ?", [(node_id,) for node_id in rows.references])
-    many("INSERT INTO node_words (node_id, word_id, count) VALUES (?, ?, ?)",
-         [row for node_rows in rows.references.values() for row in node_rows])
+    references = [row for node_rows in rows.references.values() for row in node_rows]
+    if references:
+        ex("""INSERT INTO node_words (node_id, word_id, count)
+              SELECT json_extract(j.value, '$[0]'), json_extract(j.value, '$[1]'), json_extract(j.value, '$[2]')
+              FROM json_each(?) AS j""", (json.dumps(references),))
     for column, updates in (("weight", rows.weights), ("in_wm", rows.in_wm)):
-        for value, node_id in updates:
-            if ex(f"UPDATE nodes SET {column} = ? WHERE id = ?", (value, node_id)).rowcount != 1:
-                raise DatabaseError(f"{column} update of location {node_id}, which is not in the database")
+        if not updates:
+            continue
+        # 800 in_wm updates of a WM cap drop one row at a time took 1.2 s while the main thread
+        # ran Python, 8 ms alone (one statement: 23 ms / 11 ms); the 10,000-frame run's frame
+        # after a cap drop waited 67-84 ms for this writer.
+        changed = ex(f"""UPDATE nodes SET {column} = json_extract(u.value, '$[0]') FROM json_each(?) AS u
+                         WHERE nodes.id = json_extract(u.value, '$[1]')""", (json.dumps(updates),)).rowcount
+        if changed != len(updates):
+            ids = [node_id for _, node_id in updates]
+            stored = {r[0] for r in ex("SELECT id FROM nodes WHERE id IN (SELECT value FROM json_each(?))",
+                                       (json.dumps(ids),))}
+            missing = sorted(set(ids) - stored)
+            raise DatabaseError(f"{column} update of location {', '.join(map(str, missing[:10]))}, which is not "
+                                "in the database")
     many("DELETE FROM links WHERE from_id = ?2 AND to_id = ?1", [(r[0], r[1]) for r in rows.links])
     many("INSERT OR REPLACE INTO links VALUES (?, ?, ?, ?, ?)", rows.links)
     many("INSERT OR REPLACE INTO statistics VALUES (?, ?, ?)", rows.statistics)

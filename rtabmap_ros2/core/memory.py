@@ -474,6 +474,7 @@ class Memory:
         wanted = self.words_added if balance_words else 0
         transferred: list[int] = []
         words_out = 0
+        orphaned: list[int] = []  # words no WM location references: out of the vocabulary at once
         keep_one = self.params.memory.keep_one_node_per_session
         for weight in sorted(by_weight):
             maps = by_weight[weight]
@@ -486,8 +487,7 @@ class Memory:
                     continue
                 sig = self.signatures[node]
                 orphans = self.vocabulary.remove_references(node, sig.word_ids)
-                if orphans:
-                    self.vocabulary.remove_words(np.asarray(orphans, dtype=np.int64))
+                orphaned.extend(orphans)
                 words_out += len(orphans)
                 per_map[m] -= 1
                 del self.wm[node]
@@ -498,6 +498,8 @@ class Memory:
                 transferred.append(node)
             if words_out >= wanted and len(transferred) >= locations:
                 break
+        # One removal for all (a WM cap drop of 429 locations: 0.26 s one by one, most of it per call).
+        self.vocabulary.remove_words(np.asarray(orphaned, dtype=np.int64))
         return transferred
 
     def _drop_ltm_links(self, node: int) -> None:

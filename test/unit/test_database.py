@@ -205,6 +205,15 @@ def test_update_of_unknown_location_rolls_back_the_whole_batch(db, rng):
     assert db.load_statistics() == []
 
 
+def test_in_wm_update_of_many_locations_names_the_unknown_one_and_rolls_back(db, rng):
+    db.write(WriteBatch(locations=[(make_signature(rng, i), None) for i in range(1, 101)]))
+    with pytest.raises(DatabaseError, match=r"in_wm update of location 500\b"):
+        db.write(WriteBatch(in_wm={**{i: False for i in range(1, 101)}, 500: False}))
+    assert all(node.in_wm for node in db.load_nodes().values())
+    db.write(WriteBatch(in_wm={i: False for i in range(1, 101)}))  # a WM cap drop: all at once
+    assert not any(node.in_wm for node in db.load_nodes().values())
+
+
 def test_deleted_locations_are_gone_with_their_links(db, rng):
     rgb, depth = make_images(rng)
     db.write(WriteBatch(locations=[(make_signature(rng, i), SensorBlobs.encode(rgb, depth)) for i in (1, 2, 3)],
