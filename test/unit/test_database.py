@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sqlite3
+import time
 from pathlib import Path
 
 import numpy as np
@@ -417,6 +418,26 @@ def test_background_writer_reports_first_error_then_recovers(db, rng):
     writer.close()
     with pytest.raises(DatabaseError, match="closed"):
         writer.submit(WriteBatch())
+
+
+def test_background_writer_checkpoints_the_wal_into_the_file_after_the_batches(db, rng, monkeypatch):
+    import rtabmap_ros2.core.database as database_module
+
+    monkeypatch.setattr(database_module, "CHECKPOINT_INTERVAL_S", 0.0)  # after every batch
+    db.write(WriteBatch(locations=[(make_signature(rng, 1), None)]))
+    db.conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    size = db.path.stat().st_size
+    writer = BackgroundWriter(db)
+    rgb, depth = make_images(rng)
+    for i in range(2, 12):  # ~10 pages a location with its images: far from SQLite's own 1,000
+        writer.submit(WriteBatch(locations=[(make_signature(rng, i), SensorBlobs.encode(rgb, depth))]))
+    writer.join()
+    deadline = time.monotonic() + 10.0
+    while db.path.stat().st_size == size and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert db.path.stat().st_size > size  # the database file itself holds the new locations
+    writer.close()
+    assert sorted(db.load_nodes()) == list(range(1, 12))
 
 
 def test_close_finishes_background_writes(db_path, rng):
