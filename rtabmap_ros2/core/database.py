@@ -499,8 +499,8 @@ def _apply(conn: sqlite3.Connection, path: Path, rows: _Rows) -> None:
 def _apply_statements(conn: sqlite3.Connection, rows: _Rows) -> None:
     """The batch's statements, as few as possible: this runs on the writer thread, and every
     statement (and every row of an executemany) needs the GIL back from the main thread, which
-    holds it while it computes: a frame's batch took 200-250 ms then instead of 2 ms
-    (bench/bench_database.py's transfer row measures the worst case). So empty row lists run
+    holds it while it computes: a frame's batch took 170-380 ms then instead of 2 ms with one
+    statement per row (bench/bench_database.py's "main thread busy" rows measure it). So empty row lists run
     nothing, and the many-row inserts and updates are ONE statement over a JSON array each."""
     ex = conn.execute
 
