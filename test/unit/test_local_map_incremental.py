@@ -146,3 +146,63 @@ def test_transfer_keeps_the_local_map_nearest_the_robot(tmp_path):
         assert set(rtabmap.memory.wm).isdisjoint(range(30, 40))
     finally:
         rtabmap.close()
+
+
+def test_a_rejected_loop_closure_keeps_the_last_solution_and_the_next_frame_re_solves(shared_data, tmp_path,
+                                                                                      monkeypatch):
+    """RGBD/OptimizeMaxError rejects a false loop closure: as RTAB-Map, the frame keeps the last
+    solution (grown by its leaf: the batch optimum of the graph without the link) after one
+    solve, not two; the next frame re-solves, and its local map is the batch solution again."""
+    import rtabmap_ros2.core.rtabmap as rtabmap_module
+    from rtabmap_ros2.core.graph import Link, default_information
+
+    poses, links, _ = read_g2o(shared_data / "posegraphs" / "intel.g2o")
+    poses = {n + 1: T for n, T in poses.items()}
+    links = [replace(l, from_id=l.from_id + 1, to_id=l.to_id + 1) for l in links]
+    newer = {}
+    for link in links:
+        newer.setdefault(max(link.from_id, link.to_id), []).append(link)
+    # Two frames that add a leaf only, after the first loop closures (a graph to solve).
+    first_loop = min(n for n, ls in newer.items() if any(l.type.is_loop_closure for l in ls))
+    first = next(n for n in range(first_loop + 20, len(poses)) if len(newer[n]) == 1 and len(newer[n + 1]) == 1)
+    nodes = sorted(poses)[:first + 1]
+    kept = set(nodes)
+    links = [l for l in links if l.from_id in kept and l.to_id in kept]
+    solves = []
+    real_optimize = rtabmap_module.optimize
+
+    def counted(*args, **kwargs):
+        solves.append(args[2])
+        return real_optimize(*args, **kwargs)
+
+    monkeypatch.setattr(rtabmap_module, "optimize", counted)
+    rtabmap = Rtabmap(Params(), tmp_path / "intel.db")
+    try:
+        *before, last = nodes
+        _feed(rtabmap, poses, links, before, lambda node: None)
+        solves.clear()
+        # The last node, with a loop closure 1.5 m off to a node 5 frames back.
+        old = last - 5
+        true = transforms.relative(poses[last], poses[old])
+        false = Link(last, old, LinkType.LOOP_INTRA, true @ transforms.from_xy_yaw(1.5, 0.0, 0.0),
+                     default_information(1e-3))
+        sig = Signature(id=last, map_id=0, stamp_ns=last, T_odom_base=poses[last])
+        neighbour = next(l for l in newer[last] if l.type is LinkType.NEIGHBOR)
+        rtabmap.memory.add_location(sig, None, neighbour.inverted() if neighbour.from_id == last else neighbour)
+        rtabmap.memory.update_stm()
+        rtabmap._new_loops = [(false, rtabmap.memory.add_loop_closure(false))]
+        assert rtabmap._update_local_map(last) is True
+        assert rtabmap.memory.graph.link(last, old) is None
+        assert len(solves) == 1
+        dt, dr = _difference(rtabmap._optimized, _batch(rtabmap, last))
+        assert dt < TOLERANCE_M and dr < TOLERANCE_RAD, (dt, dr)
+        assert rtabmap._solved_version is None  # a kept solution is not extended by a leaf
+        # The next frame adds a leaf: re-solved, and the batch solution again.
+        solves.clear()
+        _feed(rtabmap, {**poses, last + 1: poses[last + 1]},
+              [l for l in newer[last + 1] if l.type is LinkType.NEIGHBOR], [last + 1], lambda node: None)
+        assert solves == [last + 1]
+        dt, dr = _difference(rtabmap._optimized, _batch(rtabmap, last + 1))
+        assert dt < TOLERANCE_M and dr < TOLERANCE_RAD, (dt, dr)
+    finally:
+        rtabmap.close()
