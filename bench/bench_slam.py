@@ -281,6 +281,12 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
     local_per_session: dict[int, int] = {}
     for m in local.map_ids.values():
         local_per_session[m] = local_per_session.get(m, 0) + 1
+    # Each session's part of the global ATE (one alignment for the whole map): where the global
+    # error is, while ate_per_session_m (each session aligned alone) is its own shape.
+    map_of_stamp = {gmap.stamps_ns[i]: m for i, m in gmap.map_ids.items()}
+    session_of_pose = np.array([map_of_stamp.get(int(est.stamps_ns[i]), -1) for i in result_ate.index_est])
+    global_per_session = {int(m): round(float(np.sqrt(np.mean(result_ate.errors_m[session_of_pose == m] ** 2))), 4)
+                          for m in sorted(set(session_of_pose.tolist()))}
     per_session_ate = {}
     for m in sorted(set(gmap.map_ids.values())):
         ids = sorted(i for i in gmap.poses if gmap.map_ids[i] == m)
@@ -331,6 +337,7 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
         "rejected_by_global_optimisation": len(summary["rejected_loop_closures"]),
         "components": summary["components"], "component_sizes": summary["component_sizes"][:10],
         "ate": result_ate.to_dict(), "ate_per_session_m": per_session_ate,
+        "ate_global_per_session_m": global_per_session,
         "odometry_ate": odometry_ate(gmap, gt),
         "false_loop_closures": false_loop_closures(loops, gt, gmap),
         "link_errors": link_errors(gmap, gt),
