@@ -145,34 +145,38 @@ def map_datasets(rtabmap, datasets: Iterable[tuple[str, object]], progress: bool
         One :class:`SessionSummary` per session, in order.
     """
     from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
 
     from rtabmap_ros2.errors import SensorDataError
 
     sessions: list[SessionSummary] = []
     current: Optional[SessionSummary] = None
-    for index, (name, dataset) in enumerate(datasets):
-        if index:
-            rtabmap.trigger_new_map()  # one session per bag
-        bar = tqdm(total=len(dataset), desc=name, unit="frame", disable=not progress, leave=False)
-        for frame in prefetched(dataset):
-            bar.update(1)
-            try:
-                stats = rtabmap.process(frame)
-            except SensorDataError as exc:
-                log.warning("%s: frame at %.9f s skipped: %s", name, frame.stamp_ns / 1e9, exc)
-                if current is not None:
-                    current.skipped += 1
-                continue
-            if current is None or stats.map_id != current.map_id:
-                if current is not None:
-                    bar.clear()
-                    print_line(current.line())
-                current = SessionSummary(stats.map_id, name)
-                sessions.append(current)
-            _count(current, stats)
-            if on_statistics is not None:
-                on_statistics(stats)
-        bar.close()
+    # Log lines (a merge, a skipped frame) go through the bar, each on a line of its own, as in
+    # detect: written straight to the terminal they were glued to the bar's last redraw.
+    with logging_redirect_tqdm() if progress else contextlib.nullcontext():
+        for index, (name, dataset) in enumerate(datasets):
+            if index:
+                rtabmap.trigger_new_map()  # one session per bag
+            bar = tqdm(total=len(dataset), desc=name, unit="frame", disable=not progress, leave=False)
+            for frame in prefetched(dataset):
+                bar.update(1)
+                try:
+                    stats = rtabmap.process(frame)
+                except SensorDataError as exc:
+                    log.warning("%s: frame at %.9f s skipped: %s", name, frame.stamp_ns / 1e9, exc)
+                    if current is not None:
+                        current.skipped += 1
+                    continue
+                if current is None or stats.map_id != current.map_id:
+                    if current is not None:
+                        bar.clear()
+                        print_line(current.line())
+                    current = SessionSummary(stats.map_id, name)
+                    sessions.append(current)
+                _count(current, stats)
+                if on_statistics is not None:
+                    on_statistics(stats)
+            bar.close()
     if current is not None:
         print_line(current.line())
     return sessions

@@ -1,4 +1,5 @@
-"""``map`` reads the next frames in a background thread: same frames, same order, same errors."""
+"""``map``'s loop: the next frames are read in a background thread (same frames, same order, same
+errors); log lines get a line of their own under the progress bar."""
 
 from __future__ import annotations
 
@@ -33,3 +34,35 @@ def test_stopping_early_ends_the_reader_thread():
         if item == 3:
             break
     assert threading.active_count() == before
+
+
+def test_a_warning_while_mapping_gets_a_line_of_its_own_under_the_progress_bar(tmp_path, capfd):
+    """A log line written while the bar is drawn (here: a frame with a NaN pose, skipped) starts a
+    line of its own in the terminal, not glued to the bar's last redraw (tqdm's logging redirect,
+    as ``detect`` does). The frames around it are mapped."""
+    import logging
+    import sys
+
+    import numpy as np
+
+    from rtabmap_ros2.cli.cmd_map import map_datasets
+    from rtabmap_ros2.core import transforms
+    from rtabmap_ros2.core.params import Params
+    from rtabmap_ros2.core.rtabmap import Rtabmap
+    from rtabmap_ros2.core.sensor import SensorFrame
+
+    frames = [SensorFrame(stamp_ns=k * 10**9, T_odom_base=transforms.from_xy_yaw(0.1 * k, 0.0, 0.0))
+              for k in range(5)]
+    frames[3] = SensorFrame(stamp_ns=3 * 10**9, T_odom_base=np.full((4, 4), np.nan))
+    console = logging.StreamHandler(sys.stderr)  # what the command line's basicConfig installs
+    logging.getLogger().addHandler(console)
+    try:
+        with Rtabmap(Params(), tmp_path / "map.db") as rtabmap:
+            sessions = map_datasets(rtabmap, [("bag", frames)], progress=True, print_line=lambda line: None)
+    finally:
+        logging.getLogger().removeHandler(console)
+    assert sessions[0].frames == 4 and sessions[0].skipped == 1
+    err = capfd.readouterr().err
+    at = err.index("bag: frame at 3.000000000 s skipped")
+    line_start = err[:at].rsplit("\n", 1)[-1].rsplit("\r", 1)[-1]
+    assert line_start.strip() == "", repr(err[max(0, at - 80):at + 40])
