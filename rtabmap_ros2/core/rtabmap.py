@@ -905,16 +905,19 @@ class Rtabmap:
         """
         memory = self.memory
         component = memory.graph.component(root, allowed=memory.signatures)
-        root_pose = memory.signatures[root].T_odom_base
-        planar = bool(self._planar)
-        if planar:
-            root_pose = transforms.project_planar(root_pose)
-        poses = _warm_start(root, root_pose, memory.graph, component, self._previous_poses(component), planar)
+        poses = _warm_start(root, self._root_pose(root), memory.graph, component, self._previous_poses(component),
+                            bool(self._planar))
         if poses is None:
             return None
         self._inactive_links = set(inactive_before)
         self._resolve_next = True
         return poses, memory.graph.links_within(component)
+
+    def _root_pose(self, node: int) -> np.ndarray:
+        """Odometry pose of ``node`` as the local map's root: x, y and yaw only when planar (as
+        the optimiser's Pose2 solution has it)."""
+        T = self.memory.signatures[node].T_odom_base
+        return transforms.project_planar(T) if self._planar else T
 
     def _previous_poses(self, nodes: set[int]) -> dict[int, np.ndarray]:
         """Initial guess of a re-solve over ``nodes``, in the last solution's frame: the last
@@ -1044,9 +1047,7 @@ class Rtabmap:
         planar = bool(self._planar)
         previous = self._optimized
         T_link = transforms.project_planar(link.T_from_to) if planar else link.T_from_to
-        root_pose = self.memory.signatures[newest].T_odom_base
-        if planar:
-            root_pose = transforms.project_planar(root_pose)
+        root_pose = self._root_pose(newest)
         grown = previous[link.from_id] @ T_link
         # Re-orthonormalised: round-off of the previous poses must not feed back frame after
         # frame (poses are composed again at every leaf).

@@ -3,11 +3,18 @@ errors); log lines get a line of their own under the progress bar."""
 
 from __future__ import annotations
 
+import logging
+import sys
 import threading
 
+import numpy as np
 import pytest
 
-from rtabmap_ros2.cli.cmd_map import prefetched
+from rtabmap_ros2.cli.cmd_map import map_datasets, prefetched
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.params import Params
+from rtabmap_ros2.core.rtabmap import Rtabmap
+from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.errors import BagError
 
 
@@ -40,17 +47,6 @@ def test_a_warning_while_mapping_gets_a_line_of_its_own_under_the_progress_bar(t
     """A log line written while the bar is drawn (here: a frame with a NaN pose, skipped) starts a
     line of its own in the terminal, not glued to the bar's last redraw (tqdm's logging redirect,
     as ``detect`` does). The frames around it are mapped."""
-    import logging
-    import sys
-
-    import numpy as np
-
-    from rtabmap_ros2.cli.cmd_map import map_datasets
-    from rtabmap_ros2.core import transforms
-    from rtabmap_ros2.core.params import Params
-    from rtabmap_ros2.core.rtabmap import Rtabmap
-    from rtabmap_ros2.core.sensor import SensorFrame
-
     frames = [SensorFrame(stamp_ns=k * 10**9, T_odom_base=transforms.from_xy_yaw(0.1 * k, 0.0, 0.0))
               for k in range(5)]
     frames[3] = SensorFrame(stamp_ns=3 * 10**9, T_odom_base=np.full((4, 4), np.nan))
