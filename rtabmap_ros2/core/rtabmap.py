@@ -35,6 +35,7 @@ from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
 from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid, scan_conflict
+from rtabmap_ros2.core.heap import release_free_heap
 from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, agree_many, chain_poses, consensus_guess,
                                      default_information, loop_type)
 from rtabmap_ros2.core.memory import Memory
@@ -90,6 +91,9 @@ POSE_EPSILON_M = 1e-3
 POSE_EPSILON_RAD = 1e-3
 # Verified loop closures held while waiting for a second one to merge two maps (newest kept).
 MAX_MERGE_CANDIDATES = 50
+# A transfer of this many locations at once (a WM cap drop; Alg. 4 moves a few a frame) is
+# followed by returning the freed heap to the system (core/heap.py).
+HEAP_RELEASE_MIN_TRANSFERRED = 100
 # Merge check (_scan_conflict): the scans of both maps within this radius (m) of the agreeing loop
 # closures, at most this many scans per map, this many beams per scan, on cells of this size (m).
 MERGE_CHECK_RADIUS = 10.0
@@ -1082,6 +1086,13 @@ class Rtabmap:
         stats.transferred = len(transferred)
         self._wm_changed |= bool(transferred)
         self._forget(transferred, transferred_to_ltm=True)
+        if len(transferred) >= HEAP_RELEASE_MIN_TRANSFERRED:
+            # A cap drop freed hundreds of locations all over the heap: give the pages back
+            # (core/heap.py), or RSS stays at WM's high-water mark.
+            t0 = time.perf_counter()
+            released = release_free_heap()
+            log.debug("%d locations transferred, free heap %s to the system in %.1f ms", len(transferred),
+                      "returned" if released else "not returned", (time.perf_counter() - t0) * 1000.0)
 
     def _near_robot(self, newest: int) -> set[int]:
         """SLAM mode: the WM nodes of the local map nearest the newest node, within
