@@ -205,9 +205,11 @@ def scan_conflict(a: list[tuple[np.ndarray, LaserScan]], b: list[tuple[np.ndarra
 
     Only whether a cell was crossed matters here (not how often, as for the occupancy grid), so
     the beams are drawn as lines (OpenCV, 8-connected, 1/16-cell end points) on boolean grids over
-    the cells both sets can have observed: 6-8 ms where sampling every beam every half cell took
-    26-45 ms (the merge check of the simulated sessions' merges, about 60 scans; the ratios within
-    0.015 of each other over 240 alignments, none on the other side of graph.merge_max_conflict).
+    the cells both sets can have observed. Sampling every beam every half cell into sets of cell
+    keys took 3.9x as long (``bench/bench_scan_conflict.py``, real scans of the Intel lab: 5.9 vs
+    23.3 ms a call; 6-8 vs 26-45 ms on the simulated sessions' merges, where it made the merge
+    frames the ones over T_time 0.1 s) for ratios within 0.018 of these, none on the other side
+    of graph.merge_max_conflict.
 
     Args:
         a, b: (T_frame_base 4x4, scan) pairs.

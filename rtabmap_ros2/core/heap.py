@@ -14,10 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import logging
 from typing import Callable, Optional
-
-log = logging.getLogger(__name__)
 
 
 def _glibc_malloc_trim() -> Optional[Callable[[int], int]]:

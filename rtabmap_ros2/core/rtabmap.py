@@ -35,9 +35,9 @@ from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
 from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid, scan_conflict
-from rtabmap_ros2.core.heap import release_free_heap
 from rtabmap_ros2.core.graph import (Graph, Link, LinkType, agree, agree_many, chain_poses, consensus_guess,
                                      default_information, loop_type)
+from rtabmap_ros2.core.heap import release_free_heap
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.node_tables import PoseTable
 from rtabmap_ros2.core.optimizer import load_backend, optimize, release
