@@ -16,7 +16,6 @@ Usage: ``python bench/bench_memory_growth.py --data DIR [--wm 1500] [--every 300
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import sys
 import tempfile
@@ -26,6 +25,7 @@ import faiss
 from process_memory import memory_breakdown_mb, rss_mb
 from rtabmap_ros2.cli.cmd_map import map_datasets
 from rtabmap_ros2.core import optimizer
+from rtabmap_ros2.core.heap import release_free_heap
 from rtabmap_ros2.core.params import Params, default_config_path
 from rtabmap_ros2.core.rtabmap import Rtabmap
 from rtabmap_ros2.io.bag import BagDataset
@@ -70,7 +70,6 @@ def main() -> int:
               .with_value("memory.max_wm_size", args.wm))
     bags = sorted((b for b in args.data.iterdir() if b.is_dir() and b.name.startswith("session_")),
                   key=lambda b: int(b.name.rsplit("_", 1)[1]))
-    trim = ctypes.CDLL("libc.so.6").malloc_trim if args.trim else None
     samples: list[dict] = []
     frames = [0]
     with tempfile.TemporaryDirectory() as work, Rtabmap(params, Path(work) / "map.db") as rtabmap:
@@ -79,11 +78,11 @@ def main() -> int:
             if frames[0] % args.every:
                 return
             row = sample(rtabmap, frames[0], stats.wm_size)
-            if trim is not None:
-                trim(0)
+            if args.trim:
+                release_free_heap()
                 row["rss_mb_after_trim"] = round(rss_mb(), 1)
                 if args.clone_ivf and clone_ivf(rtabmap.memory.vocabulary):
-                    trim(0)
+                    release_free_heap()
                     row["rss_mb_after_ivf_clone_trim"] = round(rss_mb(), 1)
             samples.append(row)
             print(json.dumps(row), flush=True)
