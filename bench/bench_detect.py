@@ -8,7 +8,7 @@ its resident memory is its own. T_time = 0 is "no memory management" (the baseli
 infinity column). Reported per run: median / p95 / max pTime, the frame of the max pTime and the
 vocabulary size there, largest WM held (STM excluded, as the paper's "Max WM size"), largest
 vocabulary, transferred / retrieved totals, loop closures, precision / recall and best recall
-at 100 % precision (origin policy of ``rtabmap_ros2.io.evaluation``, strict in the JSON), RSS
+at 100 % precision (merged policy of ``rtabmap_ros2.io.evaluation``, strict in the JSON), RSS
 (VmRSS) at start and end.
 
 Targets (issue 2): T_time = 0.7 s -> largest WM >= 2,210 locations at 400 features per image and
@@ -208,7 +208,7 @@ def table(results: list[dict]) -> str:
             f"{'R@100P %':>8} {'minT_loop':>9} {'RSS MB':>13}")
     lines = [head, "-" * len(head)]
     for r in results:
-        o = r["evaluation"]["origin"]
+        o = r["evaluation"]["merged"]
         thr = o["threshold_at_100_precision"]
         label = "inf (0)" if r["t_time_s"] == 0 else f"{r['t_time_s']:g}"
         lines.append(
@@ -275,7 +275,7 @@ def single(folder: Path, n: int, t_time_s: float, overrides: tuple[str, ...] = (
 
 
 def _summary(ev: dict) -> dict:
-    o = ev["origin"]
+    o = ev["merged"]
     return {"precision": o["precision"], "recall": o["recall"], "recall_at_100_precision": o["recall_at_100_precision"],
             "accepted": o["accepted"], "positives": o["positives"]}
 
@@ -314,7 +314,7 @@ def ablation(n: int, args: argparse.Namespace) -> int:
     runs.sort(key=lambda r: ([c[0] for c in configs].index(r["config"]), r["seed"]))
     head = (f"{'configuration':32} {'seed':>5} {'prec %':>6} {'rec %':>6} {'R@100P %':>8} {'med pT ms':>9} "
             f"{'maxWM':>6} {'merged':>6}")
-    lines = [f"{n} images per seed, T_time 0.7 s, T_loop 0.11 (origin policy)", head, "-" * len(head)]
+    lines = [f"{n} images per seed, T_time 0.7 s, T_loop 0.11 (merged policy)", head, "-" * len(head)]
     for label, _ in configs:
         mine = [r for r in runs if r["config"] == label]
         for r in mine + [None]:
@@ -388,7 +388,7 @@ def reference_side_by_side(n: int, args: argparse.Namespace) -> int:
                          "highest_hypothesis_id": int(r["highest_hypothesis_id"]),
                          "highest_hypothesis_value": float(r["highest_hypothesis_value"]),
                          "process_time_ms": float(r["process_time_ms"]),
-                         # The reference keeps the older id when rehearsal merges: no origin chain.
+                         # The reference keeps the older id when rehearsal merges, as ours does.
                          "merged_id": 0})
         gt = load_ground_truth(folder / "ground_truth.png", n)
         times = np.array([r["process_time_ms"] for r in rows])
@@ -468,7 +468,7 @@ def main() -> int:
             print(exc, file=sys.stderr)
             return 1
         results.append(result)
-        gt_positives = result["evaluation"]["origin"]["positives"]
+        gt_positives = result["evaluation"]["merged"]["positives"]
         print(f"T_time {t:g} s done in {time.perf_counter() - t0:.0f} s", flush=True)
         print(table(results[-1:]).splitlines()[-1], flush=True)
         path = write_report(results, n, gt_positives, args)

@@ -17,11 +17,13 @@ from rtabmap_ros2.cli.common_args import add_param_arguments
 
 log = logging.getLogger(__name__)
 
-# detections.csv columns: the ones issue 2 requires first, then the other statistics.
+# detections.csv columns: the ones issue 2 requires first, then the other statistics, then (issue 32)
+# the detection's diagnostics, to put beside RTAB-Map's own (reference_stats.csv).
 COLUMNS = ("image", "location_id", "loop_closure_id", "highest_hypothesis_id", "highest_hypothesis_value",
            "process_time_ms", "total_time_ms", "wm_size", "vocabulary_size",
            "stm_size", "ltm_size", "retrieved", "transferred", "merged_id", "rejected_loop_closure_id",
-           "words_added", "status")
+           "words_added", "status", "words_extracted", "rehearsal_similarity", "new_location_probability",
+           "likelihood_nonzero", "likelihood_mean", "likelihood_max")
 STATUS_OK, STATUS_BAD, STATUS_UNREADABLE, STATUS_REJECTED = "ok", "bad_signature", "unreadable", "rejected"
 
 EPILOG = """\
@@ -32,10 +34,10 @@ outputs (in OUT_DIR):
   params.yaml     the parameters used (defaults: the 2013 paper's Table I, not config/rtabmap.yaml)
 
 ground truth (--ground-truth GT.png): RTAB-Map's N x N matrix, pixel (i, j) = 255 when image i+1
-closes a loop with image j+1. Rehearsal merges the previous location into the new one and keeps
-the OLDER image's words under the NEWER id, so a loop closure i -> L is counted correct when
-GT[i, L] or GT[i, origin(L)], origin following the merged_id chains of detections.csv (the
-"origin" policy); the strict count (GT[i, L] only) is printed too. Recall is over the images
+closes a loop with image j+1. The strict count (GT[i, L] only, as ../shared/tools/score_lcd.py)
+is printed, and the "merged" one: rehearsal merges an image's location into the previous one (the
+older location stays; the row's location_id is it, merged_id the image merged), and a loop closure
+i -> L also counts when GT[i, m] for an image m merged into L. Recall is over the images
 with a ground-truth loop closure; the best recall at 100 % precision is searched over
 thresholds on highest_hypothesis_value. A ground-truth file inside IMAGE_DIR is not an image.
 """
@@ -94,7 +96,9 @@ def run(args: argparse.Namespace) -> int:
                     row["status"] = STATUS_REJECTED
                 else:
                     row.update({k: v for k, v in stats.to_dict().items() if k in row and k != "image"})
-                    row["highest_hypothesis_value"] = round(stats.highest_hypothesis_value, 6)
+                    for name in ("highest_hypothesis_value", "rehearsal_similarity", "new_location_probability",
+                                 "likelihood_mean", "likelihood_max"):
+                        row[name] = round(float(row[name]), 6)
                     row["process_time_ms"] = round(stats.process_time_ms, 3)
                     row["total_time_ms"] = round(stats.total_time_ms, 3)
                     row["status"] = STATUS_BAD if stats.bad_signature else STATUS_OK
@@ -122,7 +126,7 @@ def _exclude_ground_truth(dataset, gt_path: Path) -> None:
 
 
 def _print_evaluation(result: dict) -> None:
-    for policy in ("origin", "strict"):
+    for policy in ("merged", "strict"):
         r = result[policy]
         threshold = r["threshold_at_100_precision"]
         at = f" (highest_hypothesis_value >= {threshold:.4f})" if threshold is not None else ""

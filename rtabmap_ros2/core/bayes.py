@@ -22,6 +22,12 @@ from rtabmap_ros2.core.params import BayesParams
 
 NEW_LOCATION = -1
 _EPSILON = 1e-9
+# Rtabmap::adjustLikelihood's epsilon: sigma below it counts as no spread.
+LIKELIHOOD_EPSILON = 1e-4
+# The new location's likelihood when no score stands out (or none is above 0): RTAB-Map's 2.
+NO_STANDOUT_NEW_LIKELIHOOD = 2.0
+# Non-zero scores always kept for mu and sigma when the highest are trimmed (likelihood's trim).
+MIN_CHANCE_SCORES = 2
 # Transition weights (relative to the centre's 1) below this are dropped from neighbourhoods.
 NEGLIGIBLE_TRANSITION = 1e-6
 # A column of the prior whose excess over the median is below this fraction of the largest
@@ -38,29 +44,48 @@ class Hypothesis:
     new_location_probability: float
 
 
-def likelihood(scores: dict[int, float]) -> dict[int, float]:
-    """Observation model (Eq. 3 and 4) from the Eq. 1 similarity of every WM location.
+def likelihood(scores: dict[int, float], trim: float = 0.0) -> dict[int, float]:
+    """Observation model (Eq. 3 and 4) from the raw score of every WM location.
+
+    As RTAB-Map's ``Rtabmap::adjustLikelihood`` (the paper's Eq. 3-4 with its implementation's
+    details, each of which moved precision and recall on real images, issue 32): mu and sigma
+    over the non-zero scores, sigma the *sample* standard deviation (n - 1; 0 for one score);
+    a location stands out when its score is strictly above mu + sigma, and its likelihood is then
+    ``(s - (sigma - 1e-4)) / mu``; every other location gets 1. The new location gets
+    ``mu / sigma + 1`` when sigma > 1e-4 and some location stood out, else 2 (no location shares a
+    word with the image, or none stands out: a new place is then twice as likely as any).
+
+    ``trim`` (not in RTAB-Map, ``bayes.likelihood_trim``): mu and sigma leave out this fraction of
+    the highest non-zero scores (at least two are kept). They stand for the chance level of the
+    scores; the highest ones are the candidates themselves (a revisited place and its graph
+    neighbours), which, with an exact vocabulary search (few chance matches), make up much of the
+    non-zero scores and raise mu and sigma until the right place no longer stands out.
 
     Args:
-        scores: location id -> similarity s_j in [0, 1] for every location in WM (zeros included).
+        scores: location id -> raw score (Eq. 1 similarity or tf-idf) for every location in WM,
+            zeros included.
+        trim: fraction in [0, 1) of the highest non-zero scores left out of mu and sigma.
 
     Returns:
         location id -> likelihood, plus :data:`NEW_LOCATION` -> likelihood of a new location.
     """
     values = np.fromiter(scores.values(), dtype=float, count=len(scores))
     non_null = values[values > 0]
-    out = {loc: 1.0 for loc in scores}
-    if non_null.size == 0:
-        out[NEW_LOCATION] = 1.0
-        return out
-    mu = float(non_null.mean())
-    sigma = float(non_null.std())
-    # Eq. 3: only locations scoring above mu + sigma raise their likelihood above 1.
-    for loc, s in scores.items():
-        if s >= mu + sigma and s > 0:
-            out[loc] = (s - sigma) / mu
+    if trim > 0.0 and non_null.size > MIN_CHANCE_SCORES:
+        kept = max(MIN_CHANCE_SCORES, int(round(non_null.size * (1.0 - trim))))
+        non_null = np.partition(non_null, kept - 1)[:kept]
+    out = dict.fromkeys(scores, 1.0)
+    mu = float(non_null.mean()) if non_null.size else 0.0
+    sigma = float(non_null.std(ddof=1)) if non_null.size > 1 else 0.0
+    stood_out = False
+    if mu > 0.0:
+        # Eq. 3: only locations scoring above mu + sigma raise their likelihood above 1.
+        for loc, s in scores.items():
+            if s > mu + sigma:
+                out[loc] = (s - (sigma - LIKELIHOOD_EPSILON)) / mu
+                stood_out = True
     # Eq. 4: a new location is likely when no score stands out (sigma small relative to mu).
-    out[NEW_LOCATION] = mu / sigma + 1.0 if sigma > _EPSILON else 2.0
+    out[NEW_LOCATION] = mu / sigma + 1.0 if sigma > LIKELIHOOD_EPSILON and stood_out else NO_STANDOUT_NEW_LIKELIHOOD
     return out
 
 

@@ -205,6 +205,10 @@ class BayesParams:
         "tf_idf", "Raw score of a WM location before Eq. 3-4: tf_idf (RTAB-Map's Kp/TfIdfLikelihoodUsed: "
         "sum over the frame's words of n_wj log10(N / n_w) / n_j, over the inverted index) or eq1 "
         "(the paper's Eq. 1 similarity)")
+    likelihood_trim: float = _p(
+        0.0, "Not in RTAB-Map (0 = its Eq. 3-4): the mean and standard deviation of Eq. 3-4 leave out this "
+        "fraction of the highest non-zero scores, the candidates themselves, so that they measure the chance "
+        "level (core/bayes.py likelihood)", "ratio")
     loop_ratio: float = _p(
         0.0, "RTAB-Map's Rtabmap/LoopRatio: reject a hypothesis below this ratio of the previous "
         "frame's hypothesis value, or when the previous value was 0 (0 = off, RTAB-Map's default, as here: "
@@ -241,6 +245,7 @@ class BayesParams:
                "in (0, 1)")
         _check(self.likelihood in ("tf_idf", "eq1"), "bayes.likelihood", self.likelihood, "tf_idf or eq1")
         _check(0.0 <= self.loop_ratio <= 1.0, "bayes.loop_ratio", self.loop_ratio, "in [0, 1]")
+        _check(0.0 <= self.likelihood_trim < 1.0, "bayes.likelihood_trim", self.likelihood_trim, "in [0, 1)")
         _check(self.epipolar_min_matches >= 8, "bayes.epipolar_min_matches", self.epipolar_min_matches,
                ">= 8 (a fundamental matrix needs 8 pairs)")
         _check(self.epipolar_max_distance > 0.0, "bayes.epipolar_max_distance", self.epipolar_max_distance, "> 0")

@@ -133,6 +133,13 @@ class Statistics:
     merged_id: int = 0
     bad_signature: bool = False
     localized: bool = False
+    # Diagnostics of the detection (side by side with RTAB-Map's own statistics, issue 32):
+    words_extracted: int = 0  # features of the image (before quantisation)
+    rehearsal_similarity: float = 0.0  # Eq. 1 with the previous STM location (0: not compared)
+    new_location_probability: float = 1.0  # posterior p(S_t = -1)
+    likelihood_nonzero: int = 0  # WM locations with a raw score above 0
+    likelihood_mean: float = 0.0  # mean of those raw scores
+    likelihood_max: float = 0.0  # largest raw score
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -439,7 +446,7 @@ class Rtabmap:
         self._last_odom_lost = _odometry_lost(frame)
 
     def _forget(self, nodes: list[int], transferred_to_ltm: bool = False) -> None:
-        """Nodes that left WM (transferred to LTM, or merged into the new location by rehearsal)
+        """Nodes that left WM (transferred to LTM, or merged into the previous location by rehearsal)
         leave the local map's state too: what :meth:`local_map` returns names only nodes in
         memory, also when the next optimisation fails and the last solution is kept.
 
@@ -504,16 +511,21 @@ class Rtabmap:
         memory.add_location(sig, blobs, neighbor)
         self._session_nodes += 1
         stats.location_id = sig.id
+        stats.words_extracted = len(features.keypoints)
         # Weight update (§III-B) and STM -> WM (Alg. 1 lines 8-10).
-        stats.merged_id = memory.rehearse(sig, new_words)
+        stats.merged_id, stats.rehearsal_similarity = memory.rehearse(sig, new_words)
         if stats.merged_id:
+            # Merged into the previous location, which stays (RTAB-Map's rehearsal): this frame is
+            # that location now.
             self._forget([stats.merged_id])
+            sig = memory.last_location()
+            stats.location_id = sig.id
         memory.update_stm()
         watch.lap("rehearsal")
         if bad:
             return Hypothesis(0, 0.0, 1.0)
         # Bayes filter update in WM (Eq. 2-4) and hypothesis selection (§III-D).
-        hypothesis = self._hypothesis(sig)
+        hypothesis = self._hypothesis(sig, stats)
         stats.highest_hypothesis_id = hypothesis.location_id
         stats.highest_hypothesis_value = hypothesis.probability
         watch.lap("bayes")
@@ -534,13 +546,20 @@ class Rtabmap:
         watch.lap("verification")
         return hypothesis
 
-    def _hypothesis(self, sig: Signature) -> Hypothesis:
+    def _hypothesis(self, sig: Signature, stats: Statistics) -> Hypothesis:
         candidates = self.memory.hypothesis_ids()
         if not len(candidates) or not len(sig.word_ids):
             return Hypothesis(0, 0.0, self.bayes.posterior.get(-1, 1.0))
         scores = self.memory.similarities(sig, candidates)
-        self.bayes.update(candidates, likelihood(scores))
-        return self.bayes.highest()
+        raw = np.fromiter(scores.values(), dtype=float, count=len(scores))
+        non_null = raw[raw > 0]
+        stats.likelihood_nonzero = int(non_null.size)
+        stats.likelihood_mean = float(non_null.mean()) if non_null.size else 0.0
+        stats.likelihood_max = float(raw.max()) if raw.size else 0.0
+        self.bayes.update(candidates, likelihood(scores, self.params.bayes.likelihood_trim))
+        hypothesis = self.bayes.highest()
+        stats.new_location_probability = hypothesis.new_location_probability
+        return hypothesis
 
     def _accepted(self, sig: Signature, hypothesis: Hypothesis, stats: Statistics) -> bool:
         """Hypothesis selection (§III-D) and RTAB-Map's validation of the selected hypothesis
@@ -820,7 +839,7 @@ class Rtabmap:
                         keypoints=features.keypoints[known], points3d=points3d[known],
                         T_odom_base=frame.T_odom_base, scan=frame.scan, camera=frame.camera)
         watch.lap("quantization")
-        hypothesis = self._hypothesis(sig)
+        hypothesis = self._hypothesis(sig, stats)
         stats.highest_hypothesis_id = hypothesis.location_id
         stats.highest_hypothesis_value = hypothesis.probability
         watch.lap("bayes")

@@ -3,11 +3,12 @@
 RTAB-Map's ground truth for an image sequence is an N x N image: pixel (i, j) is white (255)
 when image i+1 closes a loop with image j+1 (1-based image numbers = location ids of ``detect``).
 
-Matching policy. Rehearsal (2013 §III-B) merges the previous location into the new one and keeps
-the *older* location's words under the *newer* id, so location ``t`` may show the place of an
-earlier image. :func:`origins` follows the ``merged_id`` chains (``origin(t) = origin(c)`` when
-``c`` was merged into ``t``); with the *origin* policy a loop closure ``i -> L`` is correct when
-``GT[i, L]`` or ``GT[i, origin(L)]``. The *strict* policy checks ``GT[i, L]`` only.
+Matching policy. Rehearsal (2013 §III-B) merges a new image's location into the previous one when
+they look alike (RTAB-Map's rehearsal merge: the older location stays, with its id and words), so
+location ``L`` stands for image ``L`` and for the images merged into it (``merged_id`` of the rows
+whose ``location_id`` is ``L``: :func:`merged_images`). The *merged* policy counts a loop closure
+``i -> L`` correct when ``GT[i, L]`` or ``GT[i, m]`` for an image ``m`` merged into ``L``; the
+*strict* policy (``../shared/tools/score_lcd.py``'s) checks ``GT[i, L]`` only.
 
 Recall is over the images that have at least one ground-truth loop closure (RTAB-Map's
 definition); precision over the accepted loop closures.
@@ -72,54 +73,51 @@ def load_ground_truth(path: str | Path, n_images: int | None = None) -> np.ndarr
     return image > GT_PIXEL_THRESHOLD
 
 
-def origins(merged_ids: Mapping[int, int]) -> dict[int, int]:
-    """Oldest location whose words each location holds, following ``merged_id`` chains.
-
-    Args:
-        merged_ids: location id -> id of the location rehearsal merged into it (0 or absent: none).
-            Must be given in processing order (older locations first), as ``detect`` rows are.
-    """
-    out: dict[int, int] = {}
-    for location, merged in merged_ids.items():
-        out[location] = out.get(merged, merged) if merged else location
-    return out
+def merged_images(rows: Iterable[tuple[int, int]]) -> dict[int, tuple[int, ...]]:
+    """Images each location stands for besides its own: ``(location_id, merged_id)`` of every row
+    (``merged_id`` 0: nothing merged) -> location id -> the images merged into it."""
+    out: dict[int, list[int]] = {}
+    for location, merged in rows:
+        if location > 0 and merged > 0:
+            out.setdefault(location, []).append(merged)
+    return {location: tuple(images) for location, images in out.items()}
 
 
-def is_correct(gt: np.ndarray, image: int, location: int, origin: Mapping[int, int] | None = None) -> bool:
-    """Is ``image -> location`` (1-based ids) a true loop closure? ``origin`` None = strict policy."""
+def is_correct(gt: np.ndarray, image: int, location: int,
+               merged: Mapping[int, tuple[int, ...]] | None = None) -> bool:
+    """Is ``image -> location`` (1-based ids) a true loop closure? ``merged`` None = strict policy."""
     if location <= 0 or image <= 0 or image > gt.shape[0] or location > gt.shape[1]:
         return False
     if gt[image - 1, location - 1]:
         return True
-    if origin is None:
+    if merged is None:
         return False
-    root = origin.get(location, location)
-    return 0 < root <= gt.shape[1] and bool(gt[image - 1, root - 1])
+    return any(0 < m <= gt.shape[1] and gt[image - 1, m - 1] for m in merged.get(location, ()))
 
 
 def precision_recall(gt: np.ndarray, detections: Iterable[tuple[int, int]],
-                     origin: Mapping[int, int] | None = None) -> PrecisionRecall:
+                     merged: Mapping[int, tuple[int, ...]] | None = None) -> PrecisionRecall:
     """Precision and recall of accepted loop closures ``(image, location)`` (1-based, location > 0)."""
     accepted = tp = 0
     for image, location in detections:
         if location <= 0:
             continue
         accepted += 1
-        tp += is_correct(gt, image, location, origin)
+        tp += is_correct(gt, image, location, merged)
     positives = int(gt.any(axis=1).sum())
     return PrecisionRecall(accepted, tp, positives, tp / accepted if accepted else 1.0,
                            tp / positives if positives else 0.0)
 
 
 def pr_curve(gt: np.ndarray, hypothesis_ids: Sequence[int], values: Sequence[float],
-             origin: Mapping[int, int] | None = None) -> list[CurvePoint]:
+             merged: Mapping[int, tuple[int, ...]] | None = None) -> list[CurvePoint]:
     """Precision-recall curve when accepting every hypothesis whose value reaches a threshold.
 
     Args:
         gt: (N, N) bool ground truth.
         hypothesis_ids: (N,) highest hypothesis id of every image (0 = none), image order.
         values: (N,) highest hypothesis value of every image (RTAB-Map: 1 - p(new location)).
-        origin: see :func:`origins`; None = strict policy.
+        merged: see :func:`merged_images`; None = strict policy.
 
     Returns:
         One point per distinct value (decreasing threshold), each accepting values >= threshold.
@@ -129,7 +127,7 @@ def pr_curve(gt: np.ndarray, hypothesis_ids: Sequence[int], values: Sequence[flo
     if len(ids) != gt.shape[0] or len(vals) != gt.shape[0]:
         raise DatasetError(f"{len(ids)} detection rows for a {gt.shape[0]}x{gt.shape[0]} ground truth")
     valid = ids > 0
-    correct = np.array([is_correct(gt, i + 1, int(h), origin) for i, h in enumerate(ids)], dtype=bool)
+    correct = np.array([is_correct(gt, i + 1, int(h), merged) for i, h in enumerate(ids)], dtype=bool)
     positives = int(gt.any(axis=1).sum())
     order = np.argsort(-vals[valid], kind="stable")
     v, c = vals[valid][order], correct[valid][order]
@@ -160,18 +158,17 @@ def evaluate_rows(gt: np.ndarray, rows: Sequence[Mapping[str, object]]) -> dict:
     """
     if len(rows) != gt.shape[0]:
         raise DatasetError(f"{len(rows)} images for a {gt.shape[0]}x{gt.shape[0]} ground truth")
-    merged = {int(r["location_id"]): int(r["merged_id"]) for r in rows if int(r["location_id"]) > 0}
-    origin = origins(merged)
+    merged = merged_images((int(r["location_id"]), int(r["merged_id"])) for r in rows)
     loops = [(k, int(r["loop_closure_id"])) for k, r in enumerate(rows, start=1)]
     hyp_ids = [int(r["highest_hypothesis_id"]) for r in rows]
     values = [float(r["highest_hypothesis_value"]) for r in rows]
     out: dict = {}
-    for policy, org in (("origin", origin), ("strict", None)):
-        pr = precision_recall(gt, loops, org)
-        best, threshold = recall_at_full_precision(pr_curve(gt, hyp_ids, values, org))
+    for policy, images in (("merged", merged), ("strict", None)):
+        pr = precision_recall(gt, loops, images)
+        best, threshold = recall_at_full_precision(pr_curve(gt, hyp_ids, values, images))
         out[policy] = {**pr.to_dict(), "recall_at_100_precision": best, "threshold_at_100_precision": threshold}
     return out
 
 
-__all__ = ["CurvePoint", "PrecisionRecall", "evaluate_rows", "is_correct", "load_ground_truth", "origins",
+__all__ = ["CurvePoint", "PrecisionRecall", "evaluate_rows", "is_correct", "load_ground_truth", "merged_images",
            "pr_curve", "precision_recall", "recall_at_full_precision"]

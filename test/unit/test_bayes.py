@@ -21,20 +21,68 @@ def chain(ids, loops=()) -> Graph:
     return graph
 
 
-def test_likelihood_matches_eq3_eq4_by_hand():
-    # Non-null scores 0.1, 0.2, 0.6: mu = 0.3, sigma (population std) = sqrt(0.14 / 3).
+def test_likelihood_matches_rtabmap_adjust_likelihood_by_hand():
+    # Non-null scores 0.1, 0.2, 0.6: mu = 0.3, sigma the sample std (n - 1) = sqrt(0.14 / 2).
     out = likelihood({1: 0.1, 2: 0.2, 3: 0.6, 4: 0.0})
-    mu, sigma = 0.3, math.sqrt(0.14 / 3)
-    # Eq. 3: only s_j >= mu + sigma (0.516) gets (s_j - sigma) / mu; others (and zeros) get 1.
-    assert out[3] == pytest.approx((0.6 - sigma) / mu)
+    mu, sigma = 0.3, math.sqrt(0.14 / 2)
+    # Eq. 3: only s_j > mu + sigma (0.565) gets (s_j - (sigma - 1e-4)) / mu; others (and zeros) get 1.
+    assert out[3] == pytest.approx((0.6 - (sigma - 1e-4)) / mu)
     assert out[1] == out[2] == out[4] == 1.0
     # Eq. 4: new location likelihood mu / sigma + 1.
     assert out[NEW_LOCATION] == pytest.approx(mu / sigma + 1.0)
 
 
-def test_likelihood_without_any_shared_word_favours_nothing():
+def test_likelihood_of_equal_scores_has_no_spread():
+    out = likelihood({1: 0.2, 2: 0.2, 3: 0.0})
+    assert out[1] == out[2] == out[3] == 1.0  # sigma = 0: none stands out
+    assert out[NEW_LOCATION] == 2.0
+
+
+def test_likelihood_without_any_shared_word_favours_a_new_location():
+    # RTAB-Map gives the new location 2 when no WM location shares a word with the image: with 1
+    # (as before issue 32) the filter only diffused and its value drifted up towards 0.5.
     out = likelihood({1: 0.0, 2: 0.0})
-    assert out == {1: 1.0, 2: 1.0, NEW_LOCATION: 1.0}
+    assert out == {1: 1.0, 2: 1.0, NEW_LOCATION: 2.0}
+
+
+def test_trimmed_likelihood_lets_a_revisited_place_stand_out_of_its_neighbours():
+    """A revisit with an exact vocabulary search: the place and its graph neighbours share many words
+    with the image, chance matches are few. Their scores make up most of the non-zero ones: RTAB-Map's
+    mu and sigma rise with them and the place barely beats a new one; leaving the highest half out
+    measures the chance level instead."""
+    scores = {j: 0.0 for j in range(1, 201)}
+    scores.update({100: 0.66, 99: 0.5, 101: 0.45, 98: 0.3, 102: 0.3, 97: 0.2, 103: 0.15})
+    scores.update({j: 0.01 for j in (5, 20, 40, 60, 150, 170, 190)})
+    plain, trimmed = likelihood(scores), likelihood(scores, trim=0.5)
+    assert plain[100] / plain[NEW_LOCATION] < 2.0
+    assert trimmed[100] / trimmed[NEW_LOCATION] > 10 * plain[100] / plain[NEW_LOCATION]
+    assert trimmed[5] == 1.0  # chance scores still do not stand out
+    # Nothing to trim below three scores; the same values as RTAB-Map's then.
+    assert likelihood({1: 0.2, 2: 0.4}, trim=0.5) == likelihood({1: 0.2, 2: 0.4})
+
+
+@pytest.mark.parametrize("trim", [0.0, 0.5])
+def test_uninformative_observations_with_spikes_stay_below_t_loop(trim):
+    """The filter's resting value when the likelihood says little (issue 32's sharp test): chance
+    scores everywhere, now and then one location spiking once. RTAB-Map's value settles just under
+    0.1 (0.9 virtual place prior, new-place likelihood ~2), below T_loop = 0.11."""
+    rng = np.random.default_rng(3)
+    ids = np.arange(1, 301)
+    bayes = BayesFilter(BayesParams(virtual_place_prior=0.9, loop_threshold=0.11), chain(ids.tolist()))
+    values = []
+    for frame in range(200):
+        scores = {int(i): 0.0 for i in ids}
+        if frame % 2 == 0:  # every other frame shares chance words with 25 locations, the rest none
+            for i in rng.choice(ids, 25, replace=False):
+                scores[int(i)] = float(rng.uniform(0.005, 0.03))
+        if frame % 10 == 0:  # and now and then one location spikes once
+            scores[int(rng.choice(ids))] = 0.08
+        bayes.update(ids, likelihood(scores, trim))
+        values.append(bayes.highest().probability)
+    settled = np.array(values[50:])
+    # (Before issue 32: median 0.14, 90th percentile 0.18, over T_loop.)
+    assert np.median(settled) < 0.1
+    assert settled.max() < 0.11
 
 
 def test_prediction_from_new_location_uses_the_0_9_0_1_transitions():

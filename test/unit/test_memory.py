@@ -33,7 +33,7 @@ def add(memory: Memory, node_id: int, descriptors: np.ndarray) -> int:
                     points3d=np.full((len(word_ids), 3), np.nan, np.float32))
     previous = memory.last_location()
     memory.add_location(sig, None, Link(previous.id, node_id, LinkType.NEIGHBOR) if previous else None)
-    merged = memory.rehearse(sig, [w for w in word_ids.tolist() if w >= before])
+    merged, _ = memory.rehearse(sig, [w for w in word_ids.tolist() if w >= before])
     memory.update_stm()
     memory.commit()
     memory.join()
@@ -45,19 +45,22 @@ def descriptors(rng):
     return lambda: rng.integers(0, 256, (WORDS, 32), dtype=np.uint8)
 
 
-def test_rehearsal_merges_the_same_view_and_adds_weight(tmp_path, descriptors):
+def test_rehearsal_merges_the_same_view_into_the_older_location(tmp_path, descriptors):
+    """RTAB-Map's rehearsal merge: the new location is deleted, the older one stays (its id, its
+    words) and takes the new one's weight plus one."""
     memory = make_memory(tmp_path)
     view = descriptors()
     assert add(memory, 1, view) == 0
     words = len(memory.vocabulary)
-    assert add(memory, 2, view) == 1
-    assert add(memory, 3, view) == 2
-    assert list(memory.signatures) == [3] and memory.stm == [3]
-    assert memory.signatures[3].weight == 2
+    assert add(memory, 2, view) == 2
+    assert add(memory, 3, view) == 3
+    assert list(memory.signatures) == [1] and memory.stm == [1]
+    assert memory.signatures[1].weight == 2
     assert len(memory.vocabulary) == words  # no word added by the repeated views
-    assert all(memory.vocabulary.references(int(w)) == {3: 1} for w in memory.signatures[3].word_ids[:5])
-    assert 1 not in memory.graph and 2 not in memory.graph
-    assert set(memory.db.load_nodes()) == {3}
+    assert all(memory.vocabulary.references(int(w)) == {1: 1} for w in memory.signatures[1].word_ids[:5])
+    assert 2 not in memory.graph and 3 not in memory.graph
+    stored = memory.db.load_nodes()
+    assert set(stored) == {1} and stored[1].weight == 2
 
 
 def test_different_views_are_not_merged(tmp_path, descriptors):
@@ -179,12 +182,12 @@ def test_merged_location_leaves_no_link_in_the_database(tmp_path, descriptors):
     view = descriptors()
     add(memory, 1, descriptors())
     add(memory, 2, view)
-    assert add(memory, 3, view) == 2  # 2 -> 3 was written in the batch that deletes 2
+    assert add(memory, 3, view) == 3  # 2 -> 3 was in the batch that deletes 3
     stored = {(link.from_id, link.to_id) for link in memory.db.load_links()}
     nodes = set(memory.db.load_nodes())
-    assert nodes == {1, 3}
+    assert nodes == {1, 2}
     assert all(a in nodes and b in nodes for a, b in stored)
-    assert stored in ({(1, 3)}, {(3, 1)})
+    assert stored in ({(1, 2)}, {(2, 1)})
 
 
 def test_loop_closure_undone_in_its_own_frame_is_not_written(tmp_path, descriptors):
@@ -223,7 +226,7 @@ def add_moving(memory: Memory, node_id: int, descriptors: np.ndarray, T_odom: np
         T = T_link if T_link is not None else transforms.relative(previous.T_odom_base, T_odom)
         link = Link(previous.id, node_id, LinkType.NEIGHBOR, T, default_information(0.01))
     memory.add_location(sig, None, link)
-    merged = memory.rehearse(sig, [])
+    merged, _ = memory.rehearse(sig, [])
     memory.update_stm()
     memory.commit()
     memory.join()
@@ -244,24 +247,24 @@ def test_rehearsal_keeps_both_locations_of_a_moving_camera(tmp_path, descriptors
     # Turning on the spot (0.3 rad > Mem/RehearsalMaxAngle) is moving too.
     assert add_moving(memory, 3, view, transforms.from_xy_yaw(0.3, 0.0, 0.3)) == 0
     # Standing still (1 cm, Mem/RehearsalMaxDistance 5 cm): merged as in appearance-only mode.
-    assert add_moving(memory, 4, view, transforms.from_xy_yaw(0.31, 0.0, 0.3)) == 3
-    assert set(memory.signatures) == {1, 2, 4}
+    assert add_moving(memory, 4, view, transforms.from_xy_yaw(0.31, 0.0, 0.3)) == 4
+    assert set(memory.signatures) == {1, 2, 3}
 
 
-def test_rehearsal_merge_keeps_the_refined_neighbour_link(tmp_path, descriptors):
-    """Merging 2 into 3 re-anchors 2's links on 3 through the stored (scan-refined) link 2 -> 3,
-    not through raw odometry: 3 -> 1 = inverse(T_2_3 refined) @ T_2_1."""
+def test_rehearsal_merge_keeps_the_older_node_and_its_links(tmp_path, descriptors):
+    """SLAM mode, standing still: the new node 3 goes, node 2 keeps its pose, its (scan-refined)
+    link to 1 and its sensor data; nothing of 3 reaches the database."""
     memory = make_memory(tmp_path)
     view = descriptors()
     add_moving(memory, 1, descriptors(), transforms.from_xy_yaw(0.0, 0.0, 0.0))
-    add_moving(memory, 2, view, transforms.from_xy_yaw(1.0, 0.0, 0.0), T_link=transforms.from_xy_yaw(0.9, 0.1, 0.05))
-    refined = transforms.from_xy_yaw(0.02, -0.01, 0.02)  # odometry says 0.04 m, 0 rad
-    assert add_moving(memory, 3, view, transforms.from_xy_yaw(1.04, 0.0, 0.0), T_link=refined) == 2
-    T_3_1 = memory.graph.link(3, 1).T_from_to
-    expected = transforms.inverse(refined) @ transforms.inverse(transforms.from_xy_yaw(0.9, 0.1, 0.05))
-    np.testing.assert_allclose(T_3_1, expected, atol=1e-9)
-    # The two links' uncertainties add up (RTAB-Map's Link::merge).
-    np.testing.assert_allclose(memory.graph.link(3, 1).information, default_information(0.02))
+    refined = transforms.from_xy_yaw(0.9, 0.1, 0.05)
+    add_moving(memory, 2, view, transforms.from_xy_yaw(1.0, 0.0, 0.0), T_link=refined)
+    assert add_moving(memory, 3, view, transforms.from_xy_yaw(1.04, 0.0, 0.0)) == 3
+    assert set(memory.signatures) == {1, 2} and memory.stm == [1, 2]
+    np.testing.assert_allclose(memory.graph.link(1, 2).T_from_to, refined)
+    np.testing.assert_allclose(memory.signatures[2].T_odom_base, transforms.from_xy_yaw(1.0, 0.0, 0.0))
+    assert memory.signatures[2].weight == 1
+    assert set(memory.db.load_nodes()) == {1, 2}
 
 
 def test_transfer_takes_equal_weights_from_the_session_holding_most_of_wm(tmp_path, descriptors):

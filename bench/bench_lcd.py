@@ -1,0 +1,357 @@
+"""Loop closure detection on several data sets, ours beside the reference (RTAB-Map 0.22.1 C++), image by image.
+
+Issue 32: choose every detection default on real images first, never on one generator. Each data set
+is run through ``rtabmap-ros2 detect`` (the user's command, in a subprocess) once per configuration,
+and through the reference (``../shared/reference/rtabmap-reference``, when it is there) on the same
+image folder. Scored by ``../shared/tools/score_lcd.py`` (strict: a detection counts only where the
+ground truth marks that exact pair): precision, recall and recall at 100 % precision; plus the
+median time per image with feature extraction (ours: ``total_time_ms``; the reference's whole
+iteration), rehearsal merges, final vocabulary and WM sizes.
+
+Data sets (``--sets``):
+
+* ``lcd``: RTAB-Map's own 84 real images and ground truth (``../shared/data/lcd/rtabmap_samples``);
+* ``ms:SEED``: ``../shared/tools/make_sequence.py --seed SEED --frames N`` (an independent generator
+  of real-photo revisits the reference does well on);
+* ``sim:SEED``: ``rtabmap_ros2.sim.sequence`` at that seed (our own; a stress test of perceptual
+  aliasing on which the reference itself is imprecise).
+
+Configurations (``--configs``): ``defaults`` (no option), ``conformance``
+(``--config config/rtabmap_reference.yaml``: RTAB-Map 0.22's defaults), and the ablation rows of
+:data:`CONFIGS`. ``--per-image`` writes ``<data>/per_image_<set>_<config>.csv``: one row per image
+with both sides' words extracted, new words, vocabulary and WM sizes, rehearsal similarity and merge,
+new-location posterior, raw scores (count above 0, mean, max), highest hypothesis and loop closure;
+and summarises where the two part (same accept / reject decision, first images that differ).
+
+    python bench/bench_lcd.py                                   # every set, defaults + conformance
+    python bench/bench_lcd.py --sets lcd ms:31 --configs conformance --per-image
+    python bench/bench_lcd.py --ablation                        # every row of CONFIGS
+
+Results: ``bench/results/lcd.json`` (``lcd_ablation.json`` with ``--ablation``), and the table printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+RESULTS = REPO / "bench" / "results"
+DEFAULT_DATA = Path("/tmp/rtabmap_ros2_bench_lcd")
+LCD = SHARED / "data" / "lcd" / "rtabmap_samples"
+MAKE_SEQUENCE = SHARED / "tools" / "make_sequence.py"
+SCORE = SHARED / "tools" / "score_lcd.py"
+REFERENCE = SHARED / "reference"
+DEFAULT_SETS = ("lcd", "ms:31", "ms:21", "ms:44", "sim:7", "sim:11", "sim:13")
+DEFAULT_FRAMES = 3000
+CONFORMANCE = ("--config", str(REPO / "config" / "rtabmap_reference.yaml"))
+# label -> detect options. The defaults and RTAB-Map's defaults (the conformance setting) first; the
+# ablation adds, on top of RTAB-Map's defaults, each change the defaults make, alone and together.
+TRIM = ("--set", "bayes.likelihood_trim=0.5")
+EPIPOLAR = ("--set", "VhEp/Enabled=true", "--set", "bayes.epipolar_min_coverage=0")
+COVERAGE = ("--set", "VhEp/Enabled=true", "--set", "bayes.epipolar_min_coverage=0.1")
+REHEARSAL = ("--set", "Mem/RehearsalSimilarity=0.7")
+CONFIGS = {
+    "defaults": (),
+    "conformance": CONFORMANCE,
+}
+ABLATION = {
+    **CONFIGS,
+    "rtabmap + trim 0.5": CONFORMANCE + TRIM,
+    "rtabmap + trim 0.3": CONFORMANCE + ("--set", "bayes.likelihood_trim=0.3"),
+    "rtabmap + epipolar": CONFORMANCE + EPIPOLAR,
+    "rtabmap + rehearsal 0.7": CONFORMANCE + REHEARSAL,
+    "rtabmap + trim + epipolar": CONFORMANCE + TRIM + EPIPOLAR,
+    "rtabmap + trim + coverage": CONFORMANCE + TRIM + COVERAGE,
+    "rtabmap + trim + epi + reh": CONFORMANCE + TRIM + EPIPOLAR + REHEARSAL,
+}
+# Conformance tolerances (issue 32 item 2).
+MERGE_TOLERANCE = 0.20
+VOCABULARY_TOLERANCE = 0.15
+DECISION_AGREEMENT = 0.90
+SCORE_TOLERANCE = 0.03
+
+
+class DataSet:
+    """An image folder (image k = location k) and its ground-truth matrix."""
+
+    def __init__(self, name: str, images: Path, gt: Path) -> None:
+        self.name, self.images, self.gt = name, images, gt
+
+
+def prepare(spec: str, frames: int, data: Path) -> DataSet:
+    """The data set named by ``spec`` (written once under ``data`` when generated)."""
+    if spec == "lcd":
+        return DataSet("lcd", LCD / "images", LCD / "gt.bmp")
+    kind, _, seed = spec.partition(":")
+    folder = data / f"{kind}_{seed}_{frames}"
+    if kind == "ms":
+        if not (folder / "gt.png").exists():
+            subprocess.run([sys.executable, str(MAKE_SEQUENCE), "--out", str(folder), "--frames", str(frames),
+                            "--seed", seed], check=True, stdout=subprocess.DEVNULL)
+        return DataSet(spec, folder / "images", folder / "gt.png")
+    if kind == "sim":
+        sys.path.insert(0, str(REPO / "bench"))
+        from bench_detect import ensure_sequence
+
+        sequence = ensure_sequence(frames, data, int(seed))
+        # The sequence folder holds ground_truth.png beside the images: the reference would take it
+        # for image N + 1, so both read a folder of links to the images only.
+        images = folder / "images"
+        images.mkdir(parents=True, exist_ok=True)
+        for k in range(1, frames + 1):
+            link = images / f"{k}.jpg"
+            if not link.exists():
+                link.symlink_to(sequence / f"{k}.jpg")
+        return DataSet(spec, images, sequence / "ground_truth.png")
+    raise SystemExit(f"unknown data set {spec!r}: lcd, ms:SEED or sim:SEED")
+
+
+def _reference_runner(scratch: Path) -> Path:
+    sys.path.insert(0, str(REPO / "bench"))
+    from bench_detect import _reference_runnable
+
+    return _reference_runnable(REFERENCE, scratch) / "rtabmap-reference"
+
+
+def run_reference(ds: DataSet, data: Path, rerun: bool) -> Path:
+    """The reference's output folder for this data set (run once, kept)."""
+    out = data / f"reference_{ds.name.replace(':', '_')}_{_count(ds)}"
+    if rerun or not (out / "reference_stats.csv").exists():
+        t0 = time.perf_counter()
+        subprocess.run([str(_reference_runner(data)), str(ds.images), str(out)], check=True,
+                       stdout=subprocess.DEVNULL)
+        print(f"reference / {ds.name}: {time.perf_counter() - t0:.0f} s", flush=True)
+    return out
+
+
+def run_ours(ds: DataSet, label: str, options: tuple[str, ...], data: Path, rerun: bool) -> Path:
+    """Our ``detect`` output folder for this data set and configuration (kept unless ``rerun``)."""
+    out = data / f"ours_{ds.name.replace(':', '_')}_{_count(ds)}_{label.replace(' ', '_')}"
+    if rerun or not (out / "DONE").exists():
+        t0 = time.perf_counter()
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))))
+        command = [sys.executable, "-m", "rtabmap_ros2", "detect", str(ds.images), "--out", str(out),
+                   "--no-progress", *options]
+        done = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
+        if done.returncode != 0:
+            raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
+        (out / "DONE").write_text(json.dumps({"options": list(options), "seconds": time.perf_counter() - t0}))
+        print(f"ours {label} / {ds.name}: {time.perf_counter() - t0:.0f} s", flush=True)
+    return out
+
+
+def _count(ds: DataSet) -> int:
+    return sum(1 for p in ds.images.iterdir() if p.suffix.lower() in (".jpg", ".png", ".bmp", ".jpeg"))
+
+
+def score(detections: Path, gt: Path) -> dict:
+    out = subprocess.run([sys.executable, str(SCORE), str(detections), str(gt)], capture_output=True, text=True,
+                         check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _f(row: dict, key: str) -> float:
+    value = row.get(key, "")
+    return float(value) if value not in ("", None) else 0.0
+
+
+def summarise(ds: DataSet, ours_dir: Path, ref_dir: Path | None) -> dict:
+    """Scores of both sides and where they part."""
+    ours = _rows(ours_dir / "detections.csv")
+    result = {"set": ds.name, "images": len(ours), "ours": _side_summary(ours, ours_dir / "detections.csv", ds.gt,
+                                                                         time_key="total_time_ms")}
+    if ref_dir is None:
+        return result
+    ref = _rows(ref_dir / "detections.csv")
+    stats = _rows(ref_dir / "reference_stats.csv")
+    result["reference"] = _side_summary(ref, ref_dir / "detections.csv", ds.gt, time_key="process_time_ms")
+    result["reference"]["merged"] = int(sum(_f(r, "is_last_location_merged_through_weight_update") for r in stats))
+    n = min(len(ours), len(ref))
+    same = [(int(_f(ours[i], "loop_closure_id")) > 0) == (int(_f(ref[i], "loop_closure_id")) > 0) for i in range(n)]
+    result["decision_agreement"] = float(np.mean(same)) if n else None
+    result["first_differences"] = [i + 1 for i in range(n) if not same[i]][:10]
+    o, r = result["ours"], result["reference"]
+    result["conformance"] = {
+        "merges_ratio": o["merged"] / r["merged"] if r["merged"] else None,
+        "vocabulary_ratio": o["vocabulary_size"] / r["vocabulary_size"] if r["vocabulary_size"] else None,
+        "precision_difference": _diff(o["precision"], r["precision"]),
+        "recall_difference": _diff(o["recall"], r["recall"]),
+    }
+    c = result["conformance"]
+    c["within_tolerances"] = bool(
+        c["merges_ratio"] is not None and abs(c["merges_ratio"] - 1) <= MERGE_TOLERANCE
+        and c["vocabulary_ratio"] is not None and abs(c["vocabulary_ratio"] - 1) <= VOCABULARY_TOLERANCE
+        and result["decision_agreement"] >= DECISION_AGREEMENT
+        and abs(c["precision_difference"] or 0) <= SCORE_TOLERANCE and abs(c["recall_difference"] or 0) <= SCORE_TOLERANCE)
+    return result
+
+
+def _diff(a, b):
+    return None if a is None or b is None else a - b
+
+
+def _side_summary(rows: list[dict], detections: Path, gt: Path, time_key: str) -> dict:
+    s = score(detections, gt)
+    times = [_f(r, time_key) for r in rows if int(_f(r, "location_id")) > 0]
+    return {"precision": s["precision"] if s["precision"] is not None else 1.0, "recall": s["recall"],
+            "recall_at_100_precision": s["recall_at_100_precision"], "accepted": s["accepted"],
+            "false_positives": s["false_positives"], "positives": s["gt_positive_images"],
+            "merged": int(sum(1 for r in rows if int(_f(r, "merged_id")) > 0)),
+            "vocabulary_size": int(_f(rows[-1], "vocabulary_size")), "max_wm_size": max(int(_f(r, "wm_size")) for r in rows),
+            "median_ms": float(np.median(times)) if times else None}
+
+
+def per_image(ds: DataSet, ours_dir: Path, ref_dir: Path, path: Path) -> None:
+    """One row per image: both sides' statistics of that image, side by side."""
+    ours = _rows(ours_dir / "detections.csv")
+    ref = _rows(ref_dir / "detections.csv")
+    stats = _rows(ref_dir / "reference_stats.csv")
+    gt_rows = _gt_rows(ds.gt)
+    fields = ("words_extracted", "new_words", "vocabulary_size", "wm_size", "rehearsal_similarity", "merged",
+              "new_location_probability", "likelihood_nonzero", "likelihood_mean", "likelihood_max",
+              "highest_hypothesis_id", "highest_hypothesis_value", "loop_closure_id")
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["image", "gt_loop"] + [f"{side}_{k}" for k in fields for side in ("ours", "ref")])
+        for i in range(min(len(ours), len(ref), len(stats))):
+            o, r, st = ours[i], ref[i], stats[i]
+            mine = (o["words_extracted"], o["words_added"], o["vocabulary_size"], o["wm_size"], o["rehearsal_similarity"],
+                    int(int(_f(o, "merged_id")) > 0), o["new_location_probability"], o["likelihood_nonzero"],
+                    o["likelihood_mean"], o["likelihood_max"], o["highest_hypothesis_id"], o["highest_hypothesis_value"],
+                    o["loop_closure_id"])
+            theirs = (st["words_extracted_from_the_last_image"], st["dictionary_new_words"], r["vocabulary_size"],
+                      r["wm_size"], st["weight_update_similarity"], st["is_last_location_merged_through_weight_update"],
+                      st["virtual_place_hypothesis"], st["likelihood_nonzero"], st["likelihood_mean"], st["likelihood_max"],
+                      r["highest_hypothesis_id"], r["highest_hypothesis_value"], r["loop_closure_id"])
+            writer.writerow([i + 1, int(gt_rows[i]) if i < len(gt_rows) else ""]
+                            + [v for pair in zip(mine, theirs) for v in pair])
+
+
+def _gt_rows(gt: Path) -> np.ndarray:
+    import cv2
+
+    image = cv2.imread(str(gt), cv2.IMREAD_GRAYSCALE)
+    return (image == 255).any(axis=1)
+
+
+def distributions(ours_dir: Path, ref_dir: Path, gt: Path) -> dict:
+    """Medians of the quantities the two sides are compared on (loop images vs the others)."""
+    ours = _rows(ours_dir / "detections.csv")
+    ref = _rows(ref_dir / "detections.csv")
+    stats = _rows(ref_dir / "reference_stats.csv")
+    loop = _gt_rows(gt)
+    n = min(len(ours), len(ref), len(stats), len(loop))
+
+    def med(values, mask):
+        picked = [v for v, m in zip(values, mask) if m]
+        return round(float(np.median(picked)), 4) if picked else None
+
+    out = {}
+    for name, mine, theirs in (
+            ("rehearsal_similarity", [_f(o, "rehearsal_similarity") for o in ours[:n]],
+             [_f(s, "weight_update_similarity") for s in stats[:n]]),
+            ("words_extracted", [_f(o, "words_extracted") for o in ours[:n]],
+             [_f(s, "words_extracted_from_the_last_image") for s in stats[:n]]),
+            ("new_words", [_f(o, "words_added") for o in ours[:n]], [_f(s, "dictionary_new_words") for s in stats[:n]]),
+            ("likelihood_nonzero", [_f(o, "likelihood_nonzero") for o in ours[:n]],
+             [_f(s, "likelihood_nonzero") for s in stats[:n]]),
+            ("hypothesis_value", [_f(o, "highest_hypothesis_value") for o in ours[:n]],
+             [_f(r, "highest_hypothesis_value") for r in ref[:n]])):
+        out[name] = {"ours_loop": med(mine, loop[:n]), "ref_loop": med(theirs, loop[:n]),
+                     "ours_other": med(mine, ~loop[:n]), "ref_other": med(theirs, ~loop[:n])}
+    return out
+
+
+def table(results: list[dict]) -> list[str]:
+    head = (f"{'set':8} {'configuration':26} {'P':>6} {'R':>6} {'R@100P':>7} {'false':>5} {'merged':>6} "
+            f"{'vocab k':>7} {'maxWM':>6} {'med ms':>7} {'agree':>6}")
+    lines = [head, "-" * len(head)]
+    for res in results:
+        rows = [(res["config"], res["ours"], res.get("decision_agreement"))]
+        if "reference" in res and res.get("print_reference"):
+            rows.append(("reference (RTAB-Map C++)", res["reference"], None))
+        for label, s, agree in rows:
+            lines.append(f"{res['set']:8} {label:26} {s['precision']:6.3f} {s['recall']:6.3f} "
+                         f"{s['recall_at_100_precision']:7.3f} {s['false_positives']:5d} {s['merged']:6d} "
+                         f"{s['vocabulary_size'] / 1000:7.1f} {s['max_wm_size']:6d} {s['median_ms'] or 0:7.1f} "
+                         f"{'' if agree is None else f'{agree:6.3f}'}")
+    return lines
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS), help="lcd, ms:SEED, sim:SEED")
+    parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES, help="images of each generated sequence")
+    parser.add_argument("--configs", nargs="+", default=None, help=f"labels of {list(ABLATION)}")
+    parser.add_argument("--ablation", action="store_true", help="every configuration of the ablation")
+    parser.add_argument("--per-image", action="store_true", help="per-image side by side CSV per set and configuration")
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="where sequences and runs are kept")
+    parser.add_argument("--jobs", type=int, default=2, help="runs at a time")
+    parser.add_argument("--rerun", action="store_true", help="run ours again even when a run is kept")
+    parser.add_argument("--rerun-reference", action="store_true", help="run the reference again")
+    parser.add_argument("--no-reference", action="store_true", help="ours only")
+    args = parser.parse_args()
+    labels = args.configs or (list(ABLATION) if args.ablation else list(CONFIGS))
+    unknown = [c for c in labels if c not in ABLATION]
+    if unknown:
+        parser.error(f"unknown configuration(s) {unknown}: {list(ABLATION)}")
+    args.data.mkdir(parents=True, exist_ok=True)
+    sets = [prepare(s, args.frames, args.data) for s in args.sets]
+    with_reference = not args.no_reference and (REFERENCE / "rtabmap-reference").exists()
+    jobs = [(ds, label) for ds in sets for label in labels]
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        refs = dict(zip([ds.name for ds in sets],
+                        pool.map(lambda ds: run_reference(ds, args.data, args.rerun_reference) if with_reference else None,
+                                 sets)))
+        outs = list(pool.map(lambda job: run_ours(job[0], job[1], ABLATION[job[1]], args.data, args.rerun), jobs))
+    results = []
+    for (ds, label), out in zip(jobs, outs):
+        res = {"config": label, "options": list(ABLATION[label]), **summarise(ds, out, refs[ds.name])}
+        res["print_reference"] = label == labels[-1] and refs[ds.name] is not None
+        if refs[ds.name] is not None:
+            res["distributions"] = distributions(out, refs[ds.name], ds.gt)
+            if args.per_image:
+                path = args.data / f"per_image_{ds.name.replace(':', '_')}_{label}.csv"
+                per_image(ds, out, refs[ds.name], path)
+                res["per_image_csv"] = str(path)
+        results.append(res)
+    results.sort(key=lambda r: ([ds.name for ds in sets].index(r["set"]), labels.index(r["config"])))
+    lines = [f"T_loop 0.11, T_time 0.7 s, {args.frames} images per generated set; P / R / R@100P by "
+             "../shared/tools/score_lcd.py (strict); med ms: per image with features (ours total_time_ms, "
+             "the reference's whole iteration); agree: same accept / reject decision as the reference"]
+    lines += table(results)
+    print("\n".join(lines))
+    for res in results:
+        if "conformance" in res and res["config"] == "conformance":
+            c = res["conformance"]
+            print(f"conformance {res['set']}: merges x{c['merges_ratio'] or 0:.2f}, vocabulary x{c['vocabulary_ratio'] or 0:.2f}, "
+                  f"same decision {res['decision_agreement']:.3f}, dP {c['precision_difference']:+.3f}, "
+                  f"dR {c['recall_difference']:+.3f}: {'within' if c['within_tolerances'] else 'OUTSIDE'} tolerances; "
+                  f"first differences at images {res['first_differences']}")
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / ("lcd_ablation.json" if args.ablation else "lcd.json")
+    path.write_text(json.dumps({"frames": args.frames, "sets": args.sets, "configs": labels,
+                                "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "table": lines,
+                                "results": results}, indent=1))
+    print(f"-> {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
