@@ -71,9 +71,12 @@ ABLATION = {
     "rtabmap + trim 0.3": CONFORMANCE + ("--set", "bayes.likelihood_trim=0.3"),
     "rtabmap + epipolar": CONFORMANCE + EPIPOLAR,
     "rtabmap + rehearsal 0.7": CONFORMANCE + REHEARSAL,
+    "rtabmap + trim + rehearsal": CONFORMANCE + TRIM + REHEARSAL,
+    "rtabmap + trim + evidence 1": CONFORMANCE + TRIM + ("--set", "bayes.min_evidence_ratio=1"),
+    "rtabmap + trim + evidence 0.5": CONFORMANCE + TRIM + ("--set", "bayes.min_evidence_ratio=0.5"),
     "rtabmap + trim + epipolar": CONFORMANCE + TRIM + EPIPOLAR,
     "rtabmap + trim + coverage": CONFORMANCE + TRIM + COVERAGE,
-    "rtabmap + trim + epi + reh": CONFORMANCE + TRIM + EPIPOLAR + REHEARSAL,
+    "rtabmap, approximate search": CONFORMANCE + ("--set", "vocabulary.index=ivf", "--set", "vocabulary.ivf_nprobe=1"),
 }
 # Conformance tolerances (issue 32 item 2).
 MERGE_TOLERANCE = 0.20

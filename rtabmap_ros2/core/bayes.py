@@ -148,7 +148,10 @@ class BayesFilter:
     def __init__(self, params: BayesParams, graph: Graph, kept: Optional[Callable[[int], bool]] = None) -> None:
         self.params = params
         self.transitions = TransitionModel(params, graph, kept)
+        self._graph = graph
         self.posterior: dict[int, float] = {NEW_LOCATION: 1.0}
+        # The last update's likelihood (location id -> value, NEW_LOCATION included).
+        self.observation: dict[int, float] = {}
 
     def reset(self) -> None:
         self.posterior = {NEW_LOCATION: 1.0}
@@ -222,6 +225,7 @@ class BayesFilter:
         post = post / total if total > _EPSILON else np.eye(1, len(post)).ravel()
         self.posterior = {NEW_LOCATION: float(post[0])}
         self.posterior.update(zip(wm_ids.tolist(), post[1:].tolist()))
+        self.observation = observation
         return self.posterior
 
     def highest(self) -> Hypothesis:
@@ -237,6 +241,20 @@ class BayesFilter:
                 best_id, best_p = loc, prob
         p_new = self.posterior.get(NEW_LOCATION, 1.0)
         return Hypothesis(best_id, 1.0 - p_new if best_id else 0.0, p_new)
+
+    def supported_by_observation(self, location_id: int) -> bool:
+        """Not in RTAB-Map (``bayes.min_evidence_ratio``, 0 = off): the last update's likelihood of
+        the location, or of a graph neighbour, is at least ``min_evidence_ratio`` times the new
+        location's. The posterior carries belief from earlier frames: after a revisit ends the
+        place keeps a value over T_loop for frames, and a weak match repeated frame after frame (a
+        camera stopped, its images merged by rehearsal) compounds; the current image must itself
+        favour the place over a new one."""
+        ratio = self.params.min_evidence_ratio
+        if ratio <= 0.0:
+            return True
+        obs = self.observation
+        best = max([obs.get(location_id, 1.0)] + [obs.get(n, 1.0) for n in self._graph.neighbors(location_id)])
+        return best >= ratio * obs.get(NEW_LOCATION, 1.0)
 
     def accepted(self, hypothesis: Hypothesis, previous_value: float = 0.0) -> bool:
         """A loop closure when the hypothesis reaches T_loop and is not the only one in WM, and,

@@ -209,6 +209,11 @@ class BayesParams:
         0.0, "Not in RTAB-Map (0 = its Eq. 3-4): the mean and standard deviation of Eq. 3-4 leave out this "
         "fraction of the highest non-zero scores, the candidates themselves, so that they measure the chance "
         "level (core/bayes.py likelihood)", "ratio")
+    min_evidence_ratio: float = _p(
+        0.0, "Not in RTAB-Map (0 = off): a hypothesis reaching T_loop is accepted only when this frame's "
+        "likelihood of it, or of a graph neighbour, is at least this ratio of the new location's: the "
+        "current image must itself favour the place, not only the belief carried from earlier frames (a "
+        "revisit that ended, a weak match repeated while the camera stands still)", "ratio")
     loop_ratio: float = _p(
         0.0, "RTAB-Map's Rtabmap/LoopRatio: reject a hypothesis below this ratio of the previous "
         "frame's hypothesis value, or when the previous value was 0 (0 = off, RTAB-Map's default, as here: "
@@ -246,6 +251,7 @@ class BayesParams:
         _check(self.likelihood in ("tf_idf", "eq1"), "bayes.likelihood", self.likelihood, "tf_idf or eq1")
         _check(0.0 <= self.loop_ratio <= 1.0, "bayes.loop_ratio", self.loop_ratio, "in [0, 1]")
         _check(0.0 <= self.likelihood_trim < 1.0, "bayes.likelihood_trim", self.likelihood_trim, "in [0, 1)")
+        _check(self.min_evidence_ratio >= 0.0, "bayes.min_evidence_ratio", self.min_evidence_ratio, ">= 0")
         _check(self.epipolar_min_matches >= 8, "bayes.epipolar_min_matches", self.epipolar_min_matches,
                ">= 8 (a fundamental matrix needs 8 pairs)")
         _check(self.epipolar_max_distance > 0.0, "bayes.epipolar_max_distance", self.epipolar_max_distance, "> 0")

@@ -54,8 +54,14 @@ def test_detect_writes_one_row_per_image_and_evaluates(sequence_dir, tmp_path):
         assert location == k or (location < k and int(row["merged_id"]) == k) or location == 0
         assert 0 <= int(row["loop_closure_id"]) < k and 0 <= int(row["highest_hypothesis_id"]) < k
         assert 0.0 <= float(row["highest_hypothesis_value"]) <= 1.0
+        # The detection's diagnostics (issue 32), beside RTAB-Map's reference_stats.csv.
+        assert 0.0 <= float(row["rehearsal_similarity"]) <= 1.0
+        assert 0.0 <= float(row["new_location_probability"]) <= 1.0
+        assert float(row["likelihood_max"]) >= float(row["likelihood_mean"]) >= 0.0
     assert rows[UNREADABLE - 1]["location_id"] == "0" and rows[UNREADABLE - 1]["status"] == "unreadable"
     assert sum(int(r["location_id"]) == k for k, r in enumerate(rows, 1)) >= N_IMAGES - 3
+    assert sum(int(r["words_extracted"]) > 100 for r in rows) >= N_IMAGES - 3
+    assert any(int(r["likelihood_nonzero"]) > 0 for r in rows)
     assert max(int(r["wm_size"]) for r in rows) > 0
     assert (out / "database.db").stat().st_size > 1000
     assert (out / "timing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

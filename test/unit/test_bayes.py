@@ -170,6 +170,30 @@ def test_loop_ratio_rejects_a_falling_or_lone_hypothesis():
     assert off.accepted(best, 0.0) and off.accepted(best, 1.0)
 
 
+def test_a_hypothesis_needs_this_frames_evidence_when_asked():
+    """bayes.min_evidence_ratio: the belief carried from earlier frames is not enough, the current
+    likelihood of the place (or of a graph neighbour) must reach the new location's."""
+    ids = np.arange(1, 31)
+    graph = chain(ids.tolist())
+    bayes = BayesFilter(BayesParams(min_evidence_ratio=1.0), graph)
+    scores = {int(i): 0.01 for i in ids}
+    scores.update({11: 0.3, 12: 0.6, 13: 0.3})
+    for _ in range(10):
+        bayes.update(ids, likelihood(scores, trim=0.5))
+    best = bayes.highest()
+    assert best.location_id == 12 and best.probability > 0.9 and bayes.accepted(best)
+    assert bayes.supported_by_observation(12) and bayes.supported_by_observation(13)  # 13: a neighbour
+    assert not bayes.supported_by_observation(20)
+    # The revisit ends: the image shares nothing with the place, its belief lingers over T_loop.
+    bayes.update(ids, likelihood({int(i): 0.0 for i in ids}))
+    stale = bayes.highest()
+    assert stale.location_id in (11, 12, 13) and bayes.accepted(stale)
+    assert not bayes.supported_by_observation(stale.location_id)
+    off = BayesFilter(BayesParams(), graph)
+    off.observation = dict(bayes.observation)
+    assert off.supported_by_observation(stale.location_id)  # 0: RTAB-Map's behaviour
+
+
 def test_single_hypothesis_is_never_accepted():
     bayes = BayesFilter(BayesParams(loop_threshold=0.0), chain([1]))
     bayes.update(np.array([1]), {NEW_LOCATION: 0.1, 1: 10.0})
