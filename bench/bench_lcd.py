@@ -56,27 +56,21 @@ DEFAULT_SETS = ("lcd", "ms:31", "ms:21", "ms:44", "sim:7", "sim:11", "sim:13")
 DEFAULT_FRAMES = 3000
 CONFORMANCE = ("--config", str(REPO / "config" / "rtabmap_reference.yaml"))
 # label -> detect options. The defaults and RTAB-Map's defaults (the conformance setting) first; the
-# ablation adds, on top of RTAB-Map's defaults, each change the defaults make, alone and together.
-TRIM = ("--set", "bayes.likelihood_trim=0.5")
-EPIPOLAR = ("--set", "VhEp/Enabled=true", "--set", "bayes.epipolar_min_coverage=0")
-COVERAGE = ("--set", "VhEp/Enabled=true", "--set", "bayes.epipolar_min_coverage=0.1")
-REHEARSAL = ("--set", "Mem/RehearsalSimilarity=0.7")
+# ablation then takes each of the defaults' changes out alone, and tries the alternatives measured.
 CONFIGS = {
     "defaults": (),
     "conformance": CONFORMANCE,
 }
 ABLATION = {
     **CONFIGS,
-    "rtabmap + trim 0.5": CONFORMANCE + TRIM,
-    "rtabmap + trim 0.3": CONFORMANCE + ("--set", "bayes.likelihood_trim=0.3"),
-    "rtabmap + epipolar": CONFORMANCE + EPIPOLAR,
-    "rtabmap + rehearsal 0.7": CONFORMANCE + REHEARSAL,
-    "rtabmap + trim + rehearsal": CONFORMANCE + TRIM + REHEARSAL,
-    "rtabmap + trim + evidence 1": CONFORMANCE + TRIM + ("--set", "bayes.min_evidence_ratio=1"),
-    "rtabmap + trim + evidence 0.5": CONFORMANCE + TRIM + ("--set", "bayes.min_evidence_ratio=0.5"),
-    "rtabmap + trim + epipolar": CONFORMANCE + TRIM + EPIPOLAR,
-    "rtabmap + trim + coverage": CONFORMANCE + TRIM + COVERAGE,
-    "rtabmap, approximate search": CONFORMANCE + ("--set", "vocabulary.index=ivf", "--set", "vocabulary.ivf_nprobe=1"),
+    "no likelihood trim": ("--set", "bayes.likelihood_trim=0"),
+    "no evidence check": ("--set", "bayes.min_evidence_ratio=0"),
+    "no hypothesis refinement": ("--set", "bayes.refine_hops=0"),
+    "evidence ratio 1": ("--set", "bayes.min_evidence_ratio=1"),
+    "approximate search": ("--set", "vocabulary.index=ivf", "--set", "vocabulary.ivf_nprobe=1"),
+    "+ epipolar, coverage 0.1": ("--set", "VhEp/Enabled=true", "--set", "bayes.epipolar_min_coverage=0.1"),
+    "virtual place prior 0.95": ("--set", "Bayes/VirtualPlacePriorThr=0.95"),
+    "rehearsal similarity 0.7": ("--set", "Mem/RehearsalSimilarity=0.7"),
 }
 # Conformance tolerances (issue 32 item 2).
 MERGE_TOLERANCE = 0.20

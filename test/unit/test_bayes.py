@@ -194,6 +194,29 @@ def test_a_hypothesis_needs_this_frames_evidence_when_asked():
     assert off.supported_by_observation(stale.location_id)  # 0: RTAB-Map's behaviour
 
 
+def test_refined_hypothesis_follows_a_revisit_faster_than_the_first_pass():
+    """The image shows location 17 now, the belief still peaks on 14 (the previous frames showed it):
+    the posterior's peak lags; refine_hops moves the hypothesis to where this frame's
+    likelihood stands out, within the neighbourhood the transition model reaches."""
+    ids = np.arange(1, 61)
+    for refine, expected in ((0, 14), (3, 17)):
+        bayes = BayesFilter(BayesParams(refine_hops=refine), chain(ids.tolist()))
+        bayes.posterior = {NEW_LOCATION: 0.05, 13: 0.2, 14: 0.5, 15: 0.25}
+        scores = {int(i): 0.0 for i in ids}
+        scores.update({j: 0.01 for j in (3, 30, 45, 50, 55)})
+        scores.update({16: 0.2, 17: 0.5, 18: 0.2})
+        bayes.update(ids, likelihood(scores, trim=0.5))
+        assert bayes.highest().location_id == expected
+    # Nothing there stands out more than the peak: it stays. Beyond the reach: it stays too.
+    bayes = BayesFilter(BayesParams(refine_hops=3), chain(ids.tolist()))
+    bayes.posterior = {NEW_LOCATION: 0.05, 14: 0.95}
+    far = {int(i): 0.0 for i in ids}
+    far.update({j: 0.01 for j in (3, 5, 7, 9)})
+    far[40] = 0.5
+    bayes.update(ids, likelihood(far, trim=0.5))
+    assert bayes.observation[40] > 1.0 and bayes.highest().location_id == 14
+
+
 def test_single_hypothesis_is_never_accepted():
     bayes = BayesFilter(BayesParams(loop_threshold=0.0), chain([1]))
     bayes.update(np.array([1]), {NEW_LOCATION: 0.1, 1: 10.0})

@@ -9,7 +9,7 @@ from rtabmap_ros2.errors import ParameterError
 
 
 def test_defaults_are_the_papers_table_i():
-    """Table I, except where issue 12's measurements chose RTAB-Map's values (see the fields' docs)."""
+    """Table I, except where measurements chose RTAB-Map's values (see the fields' docs)."""
     p = Params()
     assert p.memory.stm_size == 30
     assert p.memory.rehearsal_similarity == pytest.approx(0.60)  # paper 0.20; RTAB-Map's default
@@ -20,9 +20,20 @@ def test_defaults_are_the_papers_table_i():
     assert p.vocabulary.nndr == pytest.approx(0.8)
     assert p.features.max_features == 400
     assert p.bayes.sigma == pytest.approx(1.6) and p.bayes.neighborhood == 16
-    # Hypothesis validation as RTAB-Map's defaults, plus its epipolar check (issue 12's ablation).
-    assert p.bayes.loop_ratio == 0.0 and p.bayes.epipolar_verification
-    assert p.bayes.epipolar_min_matches == 8
+    # Hypothesis validation as RTAB-Map's defaults (issue 32: its epipolar check off, its virtual place
+    # prior), plus the three additions measured in bench/bench_lcd.py.
+    assert p.bayes.loop_ratio == 0.0 and not p.bayes.epipolar_verification
+    assert p.bayes.virtual_place_prior == pytest.approx(0.9) and p.bayes.epipolar_min_matches == 8
+    assert p.bayes.likelihood_trim > 0 and p.bayes.min_evidence_ratio > 0 and p.bayes.refine_hops > 0
+
+
+def test_one_detector_for_detect_map_and_the_node():
+    """config/rtabmap.yaml (map, demo, the node) keeps detect's loop closure detection (issue 32)."""
+    from rtabmap_ros2.core.params import default_config_path
+
+    slam, defaults = Params.from_yaml(default_config_path()), Params()
+    assert slam.bayes == defaults.bayes and slam.vocabulary == defaults.vocabulary
+    assert slam.features == defaults.features
 
 
 @pytest.mark.parametrize("alias, value, section, field, expected", [
