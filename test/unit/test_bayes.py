@@ -201,10 +201,10 @@ def test_refined_hypothesis_follows_a_revisit_faster_than_the_first_pass():
     ids = np.arange(1, 61)
     for refine, expected in ((0, 14), (3, 17)):
         bayes = BayesFilter(BayesParams(refine_hops=refine), chain(ids.tolist()))
-        bayes.posterior = {NEW_LOCATION: 0.05, 13: 0.2, 14: 0.5, 15: 0.25}
+        bayes.posterior = {NEW_LOCATION: 0.01, 13: 0.2, 14: 0.6, 15: 0.19}
         scores = {int(i): 0.0 for i in ids}
-        scores.update({j: 0.01 for j in (3, 30, 45, 50, 55)})
-        scores.update({16: 0.2, 17: 0.5, 18: 0.2})
+        scores.update({j: 0.05 for j in (3, 30, 45, 50, 55, 58)})
+        scores.update({14: 0.1, 15: 0.1, 16: 0.1, 17: 0.15})
         bayes.update(ids, likelihood(scores, trim=0.5))
         assert bayes.highest().location_id == expected
     # Nothing there stands out more than the peak: it stays. Beyond the reach: it stays too.
