@@ -31,7 +31,7 @@ outputs (in OUT_DIR):
   detections.csv  one row per image, in input order (location_id 0: bad signature or unreadable)
   database.db     the long-term memory (an existing OUT_DIR/database.db is DELETED first)
   timing.png      process time per image with the T_time line, WM size on a second axis (Fig. 7)
-  params.yaml     the parameters used (defaults: the 2013 paper's Table I, not config/rtabmap.yaml)
+  params.yaml     the parameters used (the defaults; config/rtabmap.yaml detects alike, with SLAM memory settings)
 
 ground truth (--ground-truth GT.png): RTAB-Map's N x N matrix, pixel (i, j) = 255 when image i+1
 closes a loop with image j+1. The strict count (GT[i, L] only, as ../shared/tools/score_lcd.py)
