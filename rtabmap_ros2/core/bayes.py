@@ -128,6 +128,11 @@ class TransitionModel:
         for node in node_ids:
             self._cache.pop(node, None)
 
+    def within(self, node_id: int, hops: int) -> np.ndarray:
+        """Ids of the cached neighbourhood at most ``hops`` away (the Gaussian falls with hops)."""
+        ids, weights = self.neighbourhood(node_id)
+        return ids[weights >= self._gaussian[min(hops, self._radius)]]
+
     def neighbourhood(self, node_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(ids, unnormalised Gaussian weights) of the nodes whose transition weight is not negligible."""
         cached = self._cache.get(node_id)
@@ -255,7 +260,8 @@ class BayesFilter:
         (``location_id`` itself on ties)."""
         obs = self.observation
         best, best_like = location_id, obs.get(location_id, 1.0)
-        for node in self._graph.hops_from(location_id, self.params.refine_hops):
+        # The transition model's cached neighbourhood: no graph search (nor LTM read) per frame.
+        for node in self.transitions.within(location_id, self.params.refine_hops).tolist():
             like = obs.get(node, 1.0)
             if like > best_like and node in self.posterior:
                 best, best_like = node, like

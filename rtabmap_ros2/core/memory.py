@@ -25,7 +25,7 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.database import BackgroundWriter, Database, SensorBlobs, WriteBatch
-from rtabmap_ros2.core.graph import Graph, Link, LinkType, loop_type
+from rtabmap_ros2.core.graph import Graph, Link, LinkType
 from rtabmap_ros2.core.node_tables import SessionIds
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.sensor import LaserScan
