@@ -14,7 +14,7 @@ words: clusters of random 256-bit centres with ~1/8 of the bits flipped.
 
 Result on this machine (450 k words, 1,342 lists, 170 words per frame, 8,000 frames), two runs:
 0.07 and 0.09 KB per frame (RSS ~142 -> ~143 MB). The IVF's turnover is not what makes the long run's RSS grow at a
-fixed WM (README, Benchmarks).
+fixed WM (docs/benchmarks.md).
 
 Usage: ``python bench/bench_ivf_memory.py [--quick] [--words 450000] [--frames 8000] [--turnover 170]``
 (quick: 100 k words, 2,000 frames); writes ``bench/results/ivf_memory.json``.

@@ -39,7 +39,7 @@ def sample(rtabmap: Rtabmap, frame: int, wm_size: int) -> dict:
             "vocabulary_words": len(vocabulary), "shared_words": len(shared),
             "shared_word_entries": sum(len(locations) for locations in shared.values()),
             "links_in_ram": len(rtabmap.memory.graph.links()), "gtsam_cached": len(optimizer._GTSAM_CACHE),
-            "kept_poses": len(rtabmap._map_poses)}
+            "kept_poses": len(rtabmap.local.kept_poses)}
 
 
 def clone_ivf(vocabulary) -> bool:

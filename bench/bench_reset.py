@@ -1,7 +1,7 @@
 """Odometry reset detection on the simulated sessions' wheel odometry: resets seen, false ones.
 
 Frames hold odometry only (each becomes a node without words), so a run is fast and the figures
-are about :meth:`Rtabmap._odometry_reset` alone (default parameters):
+are about :meth:`Sessions.reset_reason` (core/sessions.py) alone (default parameters):
 
 * resets anywhere: in each of the 5 sessions, the odometry is restarted at identity every
   ``--every`` frames (one restart per run, ``sim.robot.reset_odometry``), the ``lost`` frames

@@ -26,7 +26,7 @@ import numpy as np
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.grid import _beam_samples, _beams_map, _samples_per_beam, scan_conflict
 from rtabmap_ros2.core.params import GraphParams
-from rtabmap_ros2.core.rtabmap import MERGE_CHECK_BEAMS, MERGE_CHECK_CELL, MERGE_CHECK_RADIUS, MERGE_CHECK_SCANS
+from rtabmap_ros2.core.loop_validation import MERGE_CHECK_BEAMS, MERGE_CHECK_CELL, MERGE_CHECK_RADIUS, MERGE_CHECK_SCANS
 from rtabmap_ros2.io.carmen import read_carmen_log
 
 REPO = Path(__file__).resolve().parents[1]

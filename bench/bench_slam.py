@@ -46,7 +46,8 @@ import numpy as np
 from process_memory import memory_breakdown_mb, rss_mb
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.params import Params, default_config_path
-from rtabmap_ros2.core.rtabmap import TIMING_KEYS, Rtabmap
+from rtabmap_ros2.core.rtabmap import Rtabmap
+from rtabmap_ros2.core.statistics import TIMING_KEYS
 from rtabmap_ros2.io.bag import BagDataset
 from rtabmap_ros2.cli.cmd_map import map_datasets
 from rtabmap_ros2.io.export import export_global_map

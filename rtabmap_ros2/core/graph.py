@@ -259,6 +259,14 @@ CONSENSUS_DISTANCE_M = 0.5
 CONSENSUS_ANGLE_RAD = np.deg2rad(10.0)
 
 
+def residuals(poses: dict[int, np.ndarray], links: list[Link]) -> np.ndarray:
+    """(N, 4, 4) residuals of ``links`` at ``poses``: identity where a link holds exactly."""
+    A = np.stack([poses[link.from_id] for link in links])
+    B = np.stack([poses[link.to_id] for link in links])
+    T = np.stack([link.T_from_to for link in links])
+    return transforms.inverse_many(T) @ transforms.inverse_many(A) @ B
+
+
 def agree(difference: np.ndarray) -> bool:
     """True when two alignments whose 4x4 ``difference`` (inv(A) @ B) is given agree within
     :data:`CONSENSUS_DISTANCE_M` / :data:`CONSENSUS_ANGLE_RAD` (``_support`` does all pairs at once)."""

@@ -3,7 +3,7 @@
 The 2013 paper transfers locations WM -> LTM when a frame takes longer than T_time (Alg. 4), as
 many as came in (RTAB-Map's Memory::forget: one more). That bounds WM when every frame costs in
 proportion to WM, as the paper's did. Here most SLAM frames extend the local map by a leaf
-(constant time, see Rtabmap._leaf_update) and only some re-solve it, in time proportional to the
+(constant time, see LocalMapper._leaf_update) and only some re-solve it, in time proportional to the
 local map; and the local map itself jumps from one session's nodes to all of WM when a loop
 closure merges two maps. So frames under T_time kept adding locations, the few over it let out
 three, and WM grew without bound (10,000 frames: WM 9,971 of 10,338, pTime p99 990 ms at T_time

@@ -29,7 +29,7 @@ def _feed(rtabmap: Rtabmap, poses: dict, links: list, nodes: list[int], on_frame
     """Add ``nodes`` one per frame (odometry = the file's vertex poses), each with its links to
     older nodes; loop closures go through add_loop_closure as the online ones do."""
     memory = rtabmap.memory
-    rtabmap._planar = True
+    rtabmap.local.planar = True
     by_newer: dict[int, list] = {}
     for link in links:
         newer = max(link.from_id, link.to_id)
@@ -39,17 +39,17 @@ def _feed(rtabmap: Rtabmap, poses: dict, links: list, nodes: list[int], on_frame
         sig = Signature(id=node, map_id=0, stamp_ns=node, T_odom_base=poses[node])
         memory.add_location(sig, None, neighbour.inverted() if neighbour is not None else None)
         memory.update_stm()
-        rtabmap._new_loops = []
+        rtabmap.local.new_loops = []
         for link in by_newer.get(node, []):
             if link.type.is_loop_closure and link.to_id in memory.signatures:
-                rtabmap._new_loops.append((link, memory.add_loop_closure(link)))
-        rtabmap._update_local_map(node)
+                rtabmap.local.new_loops.append((link, memory.add_loop_closure(link)))
+        rtabmap.local.update(node)
         on_frame(node)
 
 
 def _batch(rtabmap: Rtabmap, root: int) -> dict[int, np.ndarray]:
     """A fresh batch solve of the current local map's nodes and active links."""
-    links = rtabmap._local_links
+    links = rtabmap.local.links
     guess = chain_poses(root, transforms.project_planar(rtabmap.memory.signatures[root].T_odom_base), links)
     if not any(l.type.is_loop_closure for l in links):
         return guess
@@ -76,21 +76,21 @@ def test_leaf_update_equals_the_batch_solve_on_the_intel_graph(shared_data, tmp_
     rtabmap = Rtabmap(Params(), tmp_path / "intel.db")
     try:
         def on_frame(node: int) -> None:
-            solved = rtabmap._solved_version
-            leaf = len(rtabmap.memory.graph.links_of(node)) == 1 and not rtabmap._new_loops
+            solved = rtabmap.local.solved_version
+            leaf = len(rtabmap.memory.graph.links_of(node)) == 1 and not rtabmap.local.new_loops
             if leaf:
                 leaves.append(node)
             if leaf and node % 5 == 0 or node == nodes[-1]:
                 assert solved is not None
-                dt, dr = _difference(rtabmap._optimized, _batch(rtabmap, node))
+                dt, dr = _difference(rtabmap.local.poses, _batch(rtabmap, node))
                 checked.append((node, dt, dr))
                 assert dt < TOLERANCE_M and dr < TOLERANCE_RAD, (node, dt, dr)
 
         _feed(rtabmap, poses, links, nodes, on_frame)
         # The sequence has loop closures (full solves) and leaves after them (incremental).
-        assert sum(l.type.is_loop_closure for l in rtabmap._local_links) > 20
+        assert sum(l.type.is_loop_closure for l in rtabmap.local.links) > 20
         assert len(leaves) > NODES / 2 and len(checked) > 20
-        assert len(rtabmap._optimized) == NODES
+        assert len(rtabmap.local.poses) == NODES
     finally:
         rtabmap.close()
 
@@ -103,7 +103,7 @@ def _corridor(tmp_path, overrides: list[str]) -> Rtabmap:
     params = Params().with_overrides(["memory.stm_size=1", "memory.recent_wm_ratio=0", *overrides])
     rtabmap = Rtabmap(params, tmp_path / "corridor.db", delete_existing=True)
     memory = rtabmap.memory
-    rtabmap._planar = True
+    rtabmap.local.planar = True
     for k in range(1, 41):
         sig = Signature(id=k, map_id=0, stamp_ns=k, T_odom_base=transforms.from_xy_yaw(0.5 * k, 0.0, 0.0),
                         weight=41 - k)
@@ -111,7 +111,7 @@ def _corridor(tmp_path, overrides: list[str]) -> Rtabmap:
                                         default_information(1e-4))
         memory.add_location(sig, None, link)
         memory.update_stm()
-        rtabmap._update_local_map(k)
+        rtabmap.local.update(k)
         memory.commit()
     return rtabmap
 
@@ -120,7 +120,7 @@ def _transfer_frames(rtabmap: Rtabmap, frames: int) -> None:
     """``frames`` frames over T_time (no new word, nothing retrieved)."""
     for _ in range(frames):
         rtabmap.memory.words_added = 0
-        rtabmap.memory.transfer(rtabmap._near_robot(40), locations=2, balance_words=True)
+        rtabmap.memory.transfer(rtabmap.local.near_robot(40), locations=2, balance_words=True)
         rtabmap.memory.commit()
 
 
@@ -130,13 +130,13 @@ def test_transfer_keeps_the_local_map_nearest_the_robot(tmp_path):
     rtabmap = _corridor(tmp_path, ["memory.local_immunization_ratio=0.25", "memory.local_radius=10.0"])
     try:
         # 25 % of WM (39 nodes) = 9 nodes, the nearest first: 39..31 (0.5..4.5 m).
-        assert rtabmap._near_robot(40) == set(range(31, 40))
+        assert rtabmap.local.near_robot(40) == set(range(31, 40))
         _transfer_frames(rtabmap, 5)  # 2 locations a frame (one more than entered WM)
         assert len(rtabmap.memory.wm) == 29
         assert set(range(34, 40)) <= set(rtabmap.memory.wm)
         # A small radius protects fewer nodes than the ratio allows.
-        rtabmap.params = rtabmap.params.with_overrides(["memory.local_radius=1.0"])
-        assert rtabmap._near_robot(40) == {38, 39}  # 1.0 and 0.5 m away
+        rtabmap.local.params = rtabmap.params.with_overrides(["memory.local_radius=1.0"])
+        assert rtabmap.local.near_robot(40) == {38, 39}  # 1.0 and 0.5 m away
     finally:
         rtabmap.close()
     # Without it, the lightest nodes go: the ones around the robot.
@@ -153,7 +153,7 @@ def test_a_rejected_loop_closure_keeps_the_last_solution_and_the_next_frame_re_s
     """RGBD/OptimizeMaxError rejects a false loop closure: as RTAB-Map, the frame keeps the last
     solution (grown by its leaf: the batch optimum of the graph without the link) after one
     solve, not two; the next frame re-solves, and its local map is the batch solution again."""
-    import rtabmap_ros2.core.rtabmap as rtabmap_module
+    import rtabmap_ros2.core.local_map as local_map_module
     from rtabmap_ros2.core.graph import Link, default_information
 
     poses, links, _ = read_g2o(shared_data / "posegraphs" / "intel.g2o")
@@ -169,13 +169,13 @@ def test_a_rejected_loop_closure_keeps_the_last_solution_and_the_next_frame_re_s
     kept = set(nodes)
     links = [l for l in links if l.from_id in kept and l.to_id in kept]
     solves = []
-    real_optimize = rtabmap_module.optimize
+    real_optimize = local_map_module.optimize
 
     def counted(*args, **kwargs):
         solves.append(args[2])
         return real_optimize(*args, **kwargs)
 
-    monkeypatch.setattr(rtabmap_module, "optimize", counted)
+    monkeypatch.setattr(local_map_module, "optimize", counted)
     rtabmap = Rtabmap(Params(), tmp_path / "intel.db")
     try:
         *before, last = nodes
@@ -190,19 +190,19 @@ def test_a_rejected_loop_closure_keeps_the_last_solution_and_the_next_frame_re_s
         neighbour = next(l for l in newer[last] if l.type is LinkType.NEIGHBOR)
         rtabmap.memory.add_location(sig, None, neighbour.inverted() if neighbour.from_id == last else neighbour)
         rtabmap.memory.update_stm()
-        rtabmap._new_loops = [(false, rtabmap.memory.add_loop_closure(false))]
-        assert rtabmap._update_local_map(last) is True
+        rtabmap.local.new_loops = [(false, rtabmap.memory.add_loop_closure(false))]
+        assert rtabmap.local.update(last) is True
         assert rtabmap.memory.graph.link(last, old) is None
         assert len(solves) == 1
-        dt, dr = _difference(rtabmap._optimized, _batch(rtabmap, last))
+        dt, dr = _difference(rtabmap.local.poses, _batch(rtabmap, last))
         assert dt < TOLERANCE_M and dr < TOLERANCE_RAD, (dt, dr)
-        assert rtabmap._solved_version is None  # a kept solution is not extended by a leaf
+        assert rtabmap.local.solved_version is None  # a kept solution is not extended by a leaf
         # The next frame adds a leaf: re-solved, and the batch solution again.
         solves.clear()
         _feed(rtabmap, {**poses, last + 1: poses[last + 1]},
               [l for l in newer[last + 1] if l.type is LinkType.NEIGHBOR], [last + 1], lambda node: None)
         assert solves == [last + 1]
-        dt, dr = _difference(rtabmap._optimized, _batch(rtabmap, last + 1))
+        dt, dr = _difference(rtabmap.local.poses, _batch(rtabmap, last + 1))
         assert dt < TOLERANCE_M and dr < TOLERANCE_RAD, (dt, dr)
     finally:
         rtabmap.close()

@@ -1,4 +1,4 @@
-"""Multi-session edge cases (issue 14 item 5): odometry reset detection and the local map.
+"""When a new map starts (core/sessions.py; issue 14 item 5): odometry reset detection.
 
 Reset detection is exercised through :meth:`Rtabmap.process` on frames holding only odometry
 (each becomes a node without words: cheap), from synthetic drives and from the simulator's
@@ -12,13 +12,12 @@ import numpy as np
 import pytest
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Link, LinkType
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.rtabmap import Rtabmap
 from rtabmap_ros2.core.sensor import SensorFrame
+from rtabmap_ros2.core.sessions import ODOM_RESET_VARIANCE, REQUESTED, Sessions, odometry_information
 from rtabmap_ros2.sim import build_world, make_sessions
 from rtabmap_ros2.sim.robot import reset_odometry, step_covariance
-from rtabmap_ros2.sim.sequence import make_sequence
 
 NS = 10**9
 COVARIANCE = step_covariance(0.5)
@@ -187,28 +186,35 @@ def test_reset_odometry_restarts_at_identity_and_keeps_the_motion(sessions):
                                    atol=1e-9)
 
 
-# -- local map after a merge and a failed optimisation -----------------------------------------
+# -- Sessions alone -------------------------------------------------------------------------------
 
-def test_local_map_after_a_rehearsal_merge_and_a_failed_optimisation(tmp_path):
-    # The robot drives 5 nodes, a loop closure with a corrupt (NaN) information matrix makes every
-    # optimisation fail from then on, and the robot stops: the next location is merged into by
-    # rehearsal into the previous one (same image, same pose). The local map keeps its last
-    # solution, without the location that no longer exists (it raised KeyError).
-    sequence = make_sequence(6, seed=1)
-    with Rtabmap(Params(), tmp_path / "m.db") as rtabmap:
-        for k in range(5):
-            rtabmap.process(SensorFrame(k * NS, transforms.from_xy_yaw(0.5 * k, 0, 0), rgb=sequence.image(k)))
-        memory = rtabmap.memory
-        before = rtabmap.local_map()
-        last = max(before.poses)
-        first = min(before.poses)
-        memory.add_loop_closure(Link(last, first, LinkType.LOOP_INTRA, transforms.relative(
-            before.poses[last], before.poses[first]), np.full((6, 6), np.nan)))
-        stats = rtabmap.process(SensorFrame(5 * NS, transforms.from_xy_yaw(2.0, 0, 0), rgb=sequence.image(4)))
-        assert stats.merged_id == last + 1 and stats.location_id == last  # the older location stays
-        local = rtabmap.local_map()
-        assert last + 1 not in local.poses and set(local.poses) == set(before.poses)
-        assert set(local.map_ids) == set(local.poses) <= set(memory.signatures)
-        assert all(l.from_id in local.poses and l.to_id in local.poses for l in local.links)
-        for node, pose in local.poses.items():
-            np.testing.assert_allclose(pose, before.poses[node])
+def test_a_request_starts_a_new_map_only_once_the_current_one_has_a_node():
+    sessions = Sessions(Params().graph)
+    frame = pose_frames([0.0], [transforms.from_xy_yaw(1.0, 0.0, 0.0)])[0]
+    assert sessions.request_new_map() is False  # the current map is still empty: it is the new one
+    assert sessions.new_map_reason(frame) == ""
+    sessions.nodes_in_map = 3
+    assert sessions.request_new_map() is True
+    next_frame = pose_frames([1.0], [transforms.from_xy_yaw(1.2, 0.0, 0.0)])[0]
+    assert sessions.new_map_reason(next_frame) == REQUESTED
+    assert sessions.nodes_in_map == 0
+    assert sessions.new_map_reason(next_frame) == ""  # one request, one new map
+
+
+def test_reset_reasons_name_what_was_seen():
+    sessions = Sessions(Params().graph)
+    first, reset = pose_frames([0.0, 1.0], [transforms.from_xy_yaw(3.0, 1.0, 0.2), np.eye(4)])
+    sessions.new_map_reason(first)
+    sessions.nodes_in_map = 5
+    assert sessions.new_map_reason(reset) == "odometry reset: identity pose"
+    lost = np.diag([ODOM_RESET_VARIANCE] * 6)
+    frame = pose_frames([2.0], [transforms.from_xy_yaw(0.1, 0.0, 0.0)], covariance=lost)[0]
+    assert sessions.reset_reason(frame).startswith("odometry reset: covariance")
+
+
+def test_neighbour_link_information_ignores_unusable_variances():
+    cov = np.diag([0.01, 0.0, ODOM_RESET_VARIANCE, 0.04, np.nan, 0.25])
+    frame = SensorFrame(0, np.eye(4), cov)
+    info = odometry_information(frame, default_variance=0.5)
+    np.testing.assert_allclose(np.diag(info), [100.0, 2.0, 2.0, 25.0, 2.0, 4.0])
+    assert np.count_nonzero(info - np.diag(np.diag(info))) == 0

@@ -1,0 +1,186 @@
+"""Whether a verified loop closure is kept (core/loop_validation.py): RTAB-Map's
+RGBD/OptimizeMaxError check after optimisation, and the multi-session merge checks (kept poses,
+agreement from places apart, the two maps' scans)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from corridor_sessions import ODOM_INFO, inter_link, two_corridor_sessions
+from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.graph import Link, LinkType, default_information
+from rtabmap_ros2.core.loop_validation import judged_links, max_error_ratio
+from rtabmap_ros2.core.sensor import LaserScan
+
+
+def test_max_error_ratio_flags_a_link_bent_beyond_its_standard_deviation():
+    info = np.diag(1.0 / np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4]))  # sigma 1 cm, 0.57 deg
+    link = Link(1, 2, LinkType.NEIGHBOR, transforms.from_xy_yaw(1.0, 0, 0), info)
+    poses = {1: transforms.identity(), 2: transforms.from_xy_yaw(1.02, 0, 0)}
+    assert max_error_ratio(poses, [link], planar=True) == pytest.approx(2.0, rel=1e-6)
+    poses[2] = transforms.from_xy_yaw(1.0, 0, np.deg2rad(2.0))
+    assert max_error_ratio(poses, [link], planar=True) == pytest.approx(np.deg2rad(2.0) / 0.01, rel=1e-3)
+
+
+def test_max_error_ratio_counts_an_old_strain_only_by_how_far_the_new_loop_closures_moved_it():
+    """A link already 3.1 std devs off before the frame's loop closure (a 2,000-link local map has
+    a few) does not make a true loop closure that moves it by 0.2 look wrong; a link the loop
+    closure bends from 0 to 5 std devs, and the new loop closure's own error, still count."""
+    info = np.diag(1.0 / np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4]))  # sigma 1 cm
+    strained = Link(1, 2, LinkType.NEIGHBOR, transforms.from_xy_yaw(1.0, 0, 0), info)
+    loop = Link(2, 3, LinkType.LOOP_INTER, transforms.from_xy_yaw(1.0, 0, 0), info)
+    before = {1: transforms.identity(), 2: transforms.from_xy_yaw(1.031, 0, 0), 3: transforms.from_xy_yaw(2.031, 0, 0)}
+    after = {1: transforms.identity(), 2: transforms.from_xy_yaw(1.033, 0, 0), 3: transforms.from_xy_yaw(2.033, 0, 0)}
+    assert max_error_ratio(after, [strained, loop], planar=True) == pytest.approx(3.3, rel=1e-6)
+    assert max_error_ratio(after, [strained, loop], planar=True, before=before,
+                            new={loop.key()}) == pytest.approx(0.2, abs=1e-6)
+    bent = {**after, 2: transforms.from_xy_yaw(1.081, 0, 0), 3: transforms.from_xy_yaw(2.081, 0, 0)}
+    assert max_error_ratio(bent, [strained, loop], planar=True, before=before,
+                            new={loop.key()}) == pytest.approx(5.0, rel=1e-6)
+    off = {**after, 3: transforms.from_xy_yaw(2.083, 0, 0)}  # the new loop closure itself 5 cm off
+    assert max_error_ratio(off, [strained, loop], planar=True, before=before,
+                            new={loop.key()}) == pytest.approx(5.0, rel=1e-6)
+    relaxed = {**after, 2: transforms.from_xy_yaw(1.078, 0, 0), 3: transforms.from_xy_yaw(2.078, 0, 0)}
+    strained_more = {**before, 2: transforms.from_xy_yaw(1.11, 0, 0)}  # 11 std devs off before
+    assert max_error_ratio(relaxed, [strained], planar=True, before=strained_more) == 0.0  # 11 -> 7.8: not worse
+    turned = {**after, 2: transforms.from_xy_yaw(1.031, 0, np.deg2rad(4.0))}  # rotation moved 4 deg
+    assert max_error_ratio(turned, [strained], planar=True, before=before) == pytest.approx(
+        np.deg2rad(4.0) / 0.01, rel=1e-3)
+
+
+def test_optimize_max_error_skips_switched_off_loop_closures_but_never_the_frames_own():
+    info = default_information(1e-3)
+    neighbour = Link(1, 2, LinkType.NEIGHBOR, transforms.identity(), info)
+    dropped = Link(2, 7, LinkType.LOOP_INTRA, transforms.identity(), info)
+    old_bridge = Link(3, 8, LinkType.LOOP_INTER, transforms.identity(), info)
+    fresh = Link(4, 9, LinkType.LOOP_INTER, transforms.identity(), info)
+    links = [neighbour, dropped, old_bridge, fresh]
+    judged = judged_links(links, {dropped.key()}, [old_bridge, fresh], {fresh.key()})
+    assert judged == [neighbour, fresh]
+
+
+def test_merge_agreement_takes_the_session_side_from_the_local_map_not_the_drifting_odometry(tmp_path):
+    """Session 1's odometry overestimates every step by 10 % (its local map, refined by the
+    scans, does not): two true loop closures 6 m apart imply old-map alignments 0.6 m apart by
+    odometry, over the agreement tolerance, and agree on the local map's poses."""
+    rtabmap = two_corridor_sessions(tmp_path)
+    rtabmap.validator.params = rtabmap.params.with_value("graph.merge_min_loop_closures", 2)
+    try:
+        for k in range(30):
+            rtabmap.memory.signatures[31 + k].T_odom_base = transforms.from_xy_yaw(0.55 * k, 0.0, 0.0)
+        assert rtabmap.validator.allows(inter_link(37, 7)) is False
+        # Without a local map the odometry is all there is: the second one disagrees, held.
+        assert rtabmap.validator.allows(inter_link(49, 19)) is False
+        rtabmap.validator.candidates = [inter_link(37, 7)]
+        rtabmap.local.poses = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(18)}
+        assert rtabmap.validator.allows(inter_link(49, 19)) is True
+    finally:
+        rtabmap.close()
+
+
+def test_a_loop_closure_to_a_joined_session_far_from_its_kept_pose_is_rejected(tmp_path):
+    """Once the sessions are joined, an inter-session loop closure that puts the old node farther
+    than graph.merge_min_separation from its kept pose is a look-alike: rejected before the
+    optimiser, which may have nothing to judge it against (the old node's part of the map in WM
+    joined to the local map only through it). A true one is added."""
+    rtabmap = two_corridor_sessions(tmp_path)
+    try:
+        rtabmap.local.kept_poses.update({1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)})  # session 0
+        rtabmap.local.poses = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(25)}
+        rtabmap.memory.add_loop_closure(inter_link(37, 7))  # the sessions are joined
+        assert rtabmap.validator.allows(inter_link(55, 25, error_xy=(15.0, 0.0))) is False
+        assert rtabmap.validator.allows(inter_link(55, 25, error_xy=(0.3, 0.1))) is True
+    finally:
+        rtabmap.close()
+
+
+def test_a_loop_closure_within_the_session_far_from_its_local_map_pose_is_rejected(tmp_path):
+    """Within the session being mapped, a loop closure that puts the old node farther than
+    graph.merge_min_separation from where the session's own local map puts it is a look-alike
+    (seed 5 with WM 300: a poster 33.8 m along a corridor, accepted, bent the session's 64-node
+    local map, and its later true loop closures to other sessions no longer agreed). A true
+    one, a few centimetres off, is added."""
+    rtabmap = two_corridor_sessions(tmp_path)
+    try:
+        rtabmap.local.poses = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(29)}
+
+        def intra_link(error_x: float) -> Link:
+            # Node 59 (14 m along) -> node 33 (1 m along): 13 m behind, plus the error.
+            return Link(59, 33, LinkType.LOOP_INTRA, transforms.from_xy_yaw(-13.0 + error_x, 0.0, 0.0), ODOM_INFO)
+
+        assert rtabmap.validator.allows(intra_link(12.0)) is False
+        assert rtabmap.validator.allows(intra_link(0.05)) is True
+    finally:
+        rtabmap.close()
+
+
+def test_a_map_merge_waits_for_agreeing_loop_closures_far_enough_apart(tmp_path):
+    rtabmap = two_corridor_sessions(tmp_path)
+    try:
+        # A look-alike place 15 m away: held, nothing to judge it against.
+        assert rtabmap.validator.allows(inter_link(35, 5, error_xy=(15.0, 0.0))) is False
+        # A true one: held too (it disagrees with the false one).
+        assert rtabmap.validator.allows(inter_link(37, 7)) is False
+        # True ones 1.5 and 2.5 m further agree with it, but are not independent evidence yet.
+        assert rtabmap.validator.allows(inter_link(40, 10)) is False
+        assert rtabmap.validator.allows(inter_link(42, 12)) is False
+        # A true one 6 m further on both maps agrees with them: the merge happens.
+        confirming = inter_link(49, 19)
+        assert rtabmap.validator.allows(confirming) is True
+        rtabmap.memory.add_loop_closure(confirming)
+        # Once connected, a loop closure is added at once (the optimiser judges it).
+        assert rtabmap.validator.allows(inter_link(52, 22)) is True
+    finally:
+        rtabmap.close()
+
+
+def test_two_agreeing_loop_closures_do_not_merge_maps(tmp_path):
+    """Look-alikes shifted alike along parallel corridors agree in pairs: a merge takes
+    graph.merge_min_loop_closures (3) agreeing loop closures."""
+    rtabmap = two_corridor_sessions(tmp_path)
+    try:
+        assert rtabmap.validator.allows(inter_link(37, 7)) is False
+        assert rtabmap.validator.allows(inter_link(49, 19)) is False   # 6 m apart, agreeing: two only
+        assert rtabmap.validator.allows(inter_link(52, 22)) is True
+    finally:
+        rtabmap.close()
+
+
+def _corridor_scan(x: float, y: float, n: int = 481) -> LaserScan:
+    """A 360-degree scan from (x, y), yaw 0, in the corridor both sessions drive (x -2..16, y -1..1.5,
+    door frames at x = 3, 8 and 14.5)."""
+    walls = [(-2, -1, 16, -1), (-2, 1.5, 16, 1.5), (-2, -1, -2, 1.5), (16, -1, 16, 1.5)]
+    for door in (3.0, 8.0, 14.5):
+        walls += [(door, -1, door, -0.4), (door, 0.9, door, 1.5)]
+    walls = np.array(walls, float)
+    angles = -np.pi + 2 * np.pi * np.arange(n) / n
+    d = np.stack([np.cos(angles), np.sin(angles)], axis=1)[:, None, :]
+    p, e = walls[None, :, :2] - np.array([x, y]), (walls[:, 2:] - walls[:, :2])[None]
+    cross = d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (p[..., 0] * e[..., 1] - p[..., 1] * e[..., 0]) / cross
+        u = (p[..., 0] * d[..., 1] - p[..., 1] * d[..., 0]) / cross
+    t = np.where((t > 0) & (u >= 0) & (u <= 1), t, np.inf).min(axis=1)
+    return LaserScan(np.where(t < 30, t, np.inf), -np.pi, 2 * np.pi / n, 0.1, 30.0)
+
+
+def test_a_map_merge_the_scans_contradict_is_refused(tmp_path):
+    """Three look-alike loop closures shifted alike (15 m along the corridor) agree with each other;
+    the sessions' scans do not: one session's end wall and door frames fall in the other's free
+    corridor. Refused, and the held ones dropped; three true ones then merge the maps."""
+    rtabmap = two_corridor_sessions(tmp_path)
+    try:
+        memory = rtabmap.memory
+        for k in range(30):
+            memory.signatures[1 + k].scan = _corridor_scan(0.5 * k, 0.0)
+            memory.signatures[31 + k].scan = _corridor_scan(0.5 * k, 0.5)
+        rtabmap.local.kept_poses.update({1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)})  # session 0
+        rtabmap.local.poses = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(25)}
+        look_alikes = [inter_link(a, b, error_xy=(15.0, 0.0)) for a, b in ((35, 5), (41, 11), (47, 17))]
+        assert [rtabmap.validator.allows(link) for link in look_alikes] == [False, False, False]
+        assert rtabmap.validator.candidates == []
+        true_ones = [inter_link(a, b) for a, b in ((37, 7), (43, 13), (49, 19))]
+        assert [rtabmap.validator.allows(link) for link in true_ones] == [False, False, True]
+    finally:
+        rtabmap.close()
