@@ -311,7 +311,7 @@ class LocalMapper:
         if rigid:
             change = previous[common[0]] @ transforms.inverse(poses[common[0]])
         else:
-            change = _rigid_change(np.stack([previous[n] for n in common]), np.stack([poses[n] for n in common]))
+            change = _rigid_change(np.array([previous[n] for n in common]), np.array([poses[n] for n in common]))
         self.T_world_local = self.T_world_local @ change
 
     def _keep_map_pose(self, node: int, pose: np.ndarray) -> None:
@@ -370,7 +370,7 @@ class LocalMapper:
         # frame (poses are composed again at every leaf).
         align = _rigid(root_pose @ transforms.inverse(grown), planar)
         ids = list(previous)
-        stacked = np.einsum("ij,njk->nik", align, np.stack([previous[n] for n in ids]))
+        stacked = np.einsum("ij,njk->nik", align, np.array([previous[n] for n in ids]))
         poses = dict(zip(ids, stacked))
         poses[newest] = root_pose
         return poses
@@ -404,7 +404,7 @@ class LocalMapper:
         ids = list(self.poses)
         if not ids:
             return []
-        xyz = np.stack([self.poses[n][:3, 3] for n in ids])
+        xyz = np.array([self.poses[n][:3, 3] for n in ids])
         distance = np.linalg.norm(xyz - position, axis=1)
         return [ids[i] for i in np.argsort(distance, kind="stable") if distance[i] <= self.params.memory.local_radius]
 

@@ -317,7 +317,7 @@ def max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: boo
             t_moved, r_moved = error_sizes(transforms.inverse_many(was) @ residual[had], planar)
             t_err[had] = np.where(t_err[had] > t_was, np.minimum(t_err[had], t_moved), 0.0)
             r_err[had] = np.where(r_err[had] > r_was, np.minimum(r_err[had], r_moved), 0.0)
-    info = np.stack([np.diag(link.information) for link in links])
+    info = np.array([link.information for link in links], dtype=float).diagonal(axis1=1, axis2=2)
     if planar:
         t_info, r_info = np.minimum(info[:, 0], info[:, 1]), info[:, 5]
     else:
