@@ -20,8 +20,13 @@ The baseline measured in the same run is odometry alone: the ATE of the raw odom
 session aligned on its own, which favours the baseline). Paper numbers (AZIMUT-3, 5 sessions,
 750 m, 2074 nodes) are printed next to ours.
 
+* ``--seeds 0,5,9,4242,17``: ``multi`` on the 5 sessions of each simulator seed (bags in
+  bench/data/sim5 for seed 0, bench/data/sim5_seed<N> otherwise, simulated when missing), one
+  row per seed against issue 14's per-frame limits (pTime p95 <= 100 ms, max <= 300 ms, >= 15
+  frames/s, ATE <= 0.02 m, 1 component, no wrong loop closure kept; -> ``results/slam_seeds.json``).
+
 Usage: ``python bench/bench_slam.py [--quick] [--data DIR] [--parts multi,low_time,independent,no_time_limit,long]
-[--long-data DIR]``.
+[--long-data DIR] [--seeds N,N,...]``.
 ``--data`` defaults to bench/data/sim5 (``--quick``: bench/data/sim2_small), simulated when missing.
 Writes ``bench/results/slam.json`` (``slam_quick.json`` with ``--quick``).
 """
@@ -77,10 +82,11 @@ PAPER = {
 }
 
 
-def ensure_data(data: Path, quick: bool) -> Path:
-    """Simulated bags in ``data`` (generated with ``rtabmap-ros2 simulate`` if missing)."""
+def ensure_data(data: Path, quick: bool, seed: int | None = None) -> Path:
+    """Simulated bags in ``data`` (generated with ``rtabmap-ros2 simulate [--seed N]`` if missing)."""
     if not (data / "ground_truth.txt").is_file():
         cmd = [sys.executable, "-m", "rtabmap_ros2.cli.cli", "simulate", "--out", str(data)] + (["--small"] if quick else [])
+        cmd += ["--seed", str(seed)] if seed is not None else []
         print("simulating:", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
     return data
@@ -453,11 +459,15 @@ def main(argv=None) -> int:
     parser.add_argument("--config", default=None, help="parameter file (default: config/rtabmap.yaml)")
     parser.add_argument("--set", action="append", default=[], dest="overrides", metavar="NAME=VALUE")
     parser.add_argument("--out", type=Path, default=None, help="results JSON")
+    parser.add_argument("--seeds", default=None, metavar="N,N,...",
+                        help="multi on each simulator seed, checked against the per-frame limits (slam_seeds.json)")
     parser.add_argument("--workdir", type=Path, default=None,
                         help="keep the databases and exports there (default: a temporary directory, deleted at the "
                         "end: the long run's database alone is ~4 GB)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.seeds:
+        return run_seeds(args, [int(s) for s in args.seeds.split(",")])
     data = args.data or REPO / "bench" / "data" / ("sim2_small" if args.quick else "sim5")
     ensure_data(data, args.quick)
     params = Params.from_yaml(args.config or default_config_path()).with_overrides(args.overrides)
@@ -518,6 +528,48 @@ def run_parts(args, parser, params: Params, data: Path, gt: Trajectory, bags: li
     save()
     print_table(results)
     print(f"wrote {out} ({results['elapsed_s']:.0f} s)")
+    return 0
+
+
+# Issue 14's per-frame limits, checked on every seed by --seeds.
+SEED_LIMITS = {"pTime p95 (ms)": 100.0, "pTime max (ms)": 300.0, "frames/s": 15.0, "ATE (m)": 0.02,
+               "components": 1, "wrong kept": 0}
+
+
+def run_seeds(args, seeds: list[int]) -> int:
+    """``multi`` on the 5 simulated sessions of each seed; one row per seed against SEED_LIMITS."""
+    params = Params.from_yaml(args.config or default_config_path()).with_overrides(args.overrides)
+    out = args.out or REPO / "bench" / "results" / "slam_seeds.json"
+    results: dict = {"params_overrides": args.overrides, "limits": SEED_LIMITS,
+                     "machine": {"cpus": os.cpu_count(), "load_avg_start": os.getloadavg()}, "seeds": {}}
+    rows = []
+    for seed in seeds:
+        data = ensure_data(REPO / "bench" / "data" / ("sim5" if seed == 0 else f"sim5_seed{seed}"), False, seed)
+        print(f"== seed {seed}: multi-session, T_time = {params.memory.time_threshold_ms} ms", flush=True)
+        with tempfile.TemporaryDirectory(prefix="bench_slam_seed_") as tmp:
+            r = run_mapping(bags_of(data), Path(tmp) / "multi.db", params, read_tum(data / "ground_truth.txt"),
+                            Path(tmp) / "export", f"seed {seed}")
+        results["seeds"][str(seed)] = r
+        row = {"seed": seed, "pTime p95 (ms)": r["ptime_ms"]["p95"], "pTime max (ms)": r["ptime_ms"]["max"],
+               "frames/s": r["frames_per_s"], "ATE (m)": r["ate"]["rmse_m"], "components": r["components"],
+               "wrong kept": r["false_loop_closures"]["wrong_transform_kept"],
+               "main thread CPU p95 (ms)": r["main_thread_cpu_ms"]["p95"]}
+        row["within limits"] = (row["pTime p95 (ms)"] <= SEED_LIMITS["pTime p95 (ms)"]
+                                and row["pTime max (ms)"] <= SEED_LIMITS["pTime max (ms)"]
+                                and row["frames/s"] >= SEED_LIMITS["frames/s"] and row["ATE (m)"] <= SEED_LIMITS["ATE (m)"]
+                                and row["components"] == 1 and row["wrong kept"] == 0)
+        rows.append(row)
+        results["rows"] = rows
+        results["machine"]["load_avg_end"] = os.getloadavg()
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(results, indent=2, default=float) + "\n")
+    names = [k for k in rows[0] if k != "seed"]
+    print("seed  " + "  ".join(f"{n:>24s}" for n in names))
+    for row in rows:
+        print(f"{row['seed']:<6d}" + "  ".join(f"{row[n]:>24.3f}" if isinstance(row[n], float) else f"{str(row[n]):>24s}"
+                                               for n in names))
+    print("limits: " + ", ".join(f"{k} {v}" for k, v in SEED_LIMITS.items()))
+    print(f"wrote {out}")
     return 0
 
 
