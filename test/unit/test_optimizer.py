@@ -232,6 +232,10 @@ def test_released_links_lose_their_cached_gtsam_objects():
     assert len(optimizer_module._GTSAM_CACHE) == before
     result = optimize(poses, links, 2, GraphParams(), planar=True)  # made again when needed
     assert np.allclose(result.poses[0][:3, 3], [0.0, 0.0, 0.0], atol=1e-6)
+    release(links)
+    once = optimize(poses, links, 2, GraphParams(), planar=True, cache=False)   # a one-off solve
+    assert len(optimizer_module._GTSAM_CACHE) == before
+    assert all(np.array_equal(once.poses[n], result.poses[n]) for n in poses)
 
 
 def test_a_false_loop_closure_the_robust_mode_cannot_drop_is_reported_switched_off():
