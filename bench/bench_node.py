@@ -16,7 +16,18 @@
    load average before and after (best-effort loss grows with the CPU load). Needs the core and the
    simulator; skipped with a message otherwise.
 
-Prints a table and writes ``bench/results/node.json``.
+3. Two sessions into the node (issue 33): ``rtabmap-ros2 simulate --sessions 2 --small --raw-images
+   --seed 7 --no-tf-static`` with the sensors mounted off the base (mounts given as the node's
+   ``base_to_laser`` / ``base_to_camera`` parameters), session 1 then session 2 (its odometry
+   restarts at identity: a new map) each played by ``rtabmap-ros2 play --rate R`` into one node at
+   its defaults, at R = 1, 2 and 4. Reported: frames played / synchronised / processed / dropped
+   (frame queue), latency from the last message of a set to ``mapPath`` (p50 / p95 / max), the
+   worker's time per frame by part as published on ``info`` (``node_time_ms/<part>``: median, p95,
+   max per session), the nodes of the map, the frames merged into the previous node by rehearsal
+   (``merged_id`` on ``info``), and the map's connected components. ``--two-sessions-only`` runs
+   this section alone; ``--rates`` chooses the rates.
+
+Prints a table and writes ``bench/results/node.json`` (sections not run keep their last results).
 """
 
 from __future__ import annotations
@@ -138,6 +149,126 @@ def bench_replay(bag: Path, qos: str, rate: float) -> dict | None:
     return result
 
 
+# Section 3: a seed other than the demo's (0), sensors off the base (as in test_node_mounts.py).
+TWO_SESSION_SEED = 7
+LASER_MOUNT = [0.25, 0.1, 0.3, 0.0, 0.0, 0.3]
+CAMERA_MOUNT = [0.15, -0.05, 0.5, -1.5708, 0.0, -1.3]
+TWO_SESSION_RATES = [1.0, 2.0, 4.0]
+# After the last play, how long the node may take to empty its queue (s).
+DRAIN_TIMEOUT_S = 60.0
+
+
+def two_session_replay(bags: list[Path], rate: float) -> dict | None:
+    """``bags`` played one after the other into one node (defaults + mounts) at ``rate``; the
+    node's counters, latencies and the per-part times it published on ``info``."""
+    import os
+    import random
+    import subprocess
+    import tempfile
+    import threading
+
+    try:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.parameter import Parameter
+
+        from rtabmap_ros2.core.global_map import load_global_map
+        from rtabmap_ros2.ros.conversions import statistics_from_msg
+        from rtabmap_ros2.ros.frame_times import INFO_KEY_PREFIX
+        from rtabmap_ros2.ros.node import RtabmapNode
+    except ImportError as exc:
+        print(f"two-session replay: skipped ({exc})")
+        return None
+
+    domain = random.randint(150, 230)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    with tempfile.TemporaryDirectory() as tmp:
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, domain_id=domain)
+        node = RtabmapNode(context=ctx, parameter_overrides=[
+            Parameter("database_path", value=str(Path(tmp) / "bench.db")),
+            Parameter("export_dir", value=str(Path(tmp) / "exports")),
+            Parameter("base_to_laser", value=LASER_MOUNT), Parameter("base_to_camera", value=CAMERA_MOUNT)])
+        infos: list[dict[str, str]] = []
+        listener = Node("bench_info", context=ctx)
+        listener.create_subscription(DiagnosticArray, "info", lambda m: infos.append(statistics_from_msg(m)), 100)
+        executor = MultiThreadedExecutor(num_threads=3, context=ctx)
+        executor.add_node(node)
+        executor.add_node(listener)
+        thread = threading.Thread(target=executor.spin, daemon=True)
+        thread.start()
+        load_before = os.getloadavg()[0]
+        played, sessions_first_info = [], []
+        t0 = time.monotonic()
+        for bag in bags:
+            sessions_first_info.append(len(infos))
+            play = subprocess.run([sys.executable, "-m", "rtabmap_ros2.cli.cli", "play", str(bag), "--delay", "2",
+                                   "--rate", str(rate)], env=env, capture_output=True, text=True, timeout=1800)
+            played += [int(line.rsplit(":", 2)[-1].split()[0]) for line in play.stderr.splitlines()
+                       if "/rgb/image" in line and "messages" in line][:1]
+        deadline = time.monotonic() + DRAIN_TIMEOUT_S
+        while time.monotonic() < deadline and (node.frames_processed + node.frames_dropped < node._sync.emitted
+                                               or len(infos) < node.frames_processed):
+            time.sleep(0.1)
+        wall = time.monotonic() - t0
+        latencies = np.array(node.latencies_s) * 1e3
+        result = {
+            "rate": rate, "frames_played": sum(played), "frames_played_per_session": played,
+            "sets_synchronised": node._sync.emitted, "frames_processed": node.frames_processed,
+            "frames_dropped_queue": node.frames_dropped, "sync_dropped": dict(node._sync.dropped),
+            "messages_lost_in_transport": dict(node.messages_lost),
+            "bad_messages": {f"{t} ({k})": n for (t, k), n in node.bad_messages.items()},
+            "frame_errors": dict(node.frame_errors),
+            "latency_p50_ms": float(np.median(latencies)) if latencies.size else None,
+            "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else None,
+            "latency_max_ms": float(latencies.max()) if latencies.size else None,
+            "rehearsal_merges": sum(1 for info in infos if int(info.get("merged_id", "0") or 0)),
+            "wall_s": wall, "load_average_1min": [load_before, os.getloadavg()[0]],
+        }
+        # Per-part times by session, from info (each message carries the previous frame's).
+        bounds = sessions_first_info + [len(infos)]
+        result["time_ms_by_session"] = []
+        for first, last in zip(bounds, bounds[1:]):
+            rows = infos[first:last]
+            parts = sorted({k for info in rows for k in info if k.startswith(INFO_KEY_PREFIX + "/")})
+            summary = {}
+            for key in parts:
+                v = np.array([float(info[key]) for info in rows if key in info])
+                summary[key.split("/", 1)[1]] = {"median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
+                                                 "max": float(v.max())}
+            core = np.array([float(info["total_time_ms"]) for info in rows if "total_time_ms" in info])
+            if core.size:
+                summary["core total_time_ms"] = {"median": float(np.median(core)),
+                                                 "p95": float(np.percentile(core, 95)), "max": float(core.max())}
+            result["time_ms_by_session"].append(summary)
+        executor.shutdown()
+        thread.join(timeout=10)
+        node.destroy_node()
+        listener.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        from rtabmap_ros2.core.params import Params
+
+        global_map = load_global_map(Path(tmp) / "bench.db", Params())
+        result["map_nodes"] = len(global_map.poses)
+        result["map_sessions"] = len(set(global_map.map_ids.values()))
+        result["components"] = len(global_map.components)
+    result["nodes_plus_merges"] = result["map_nodes"] + result["rehearsal_merges"]
+    return result
+
+
+def _print_two_sessions(r: dict) -> None:
+    print(f"rate {r['rate']:g}x: played {r['frames_played']} ({r['frames_played_per_session']}), synchronised "
+          f"{r['sets_synchronised']}, processed {r['frames_processed']}, dropped {r['frames_dropped_queue']} "
+          f"(sync {r['sync_dropped']}); latency p50 {r['latency_p50_ms']:.0f} / p95 {r['latency_p95_ms']:.0f} / "
+          f"max {r['latency_max_ms']:.0f} ms; map {r['map_nodes']} nodes + {r['rehearsal_merges']} rehearsal "
+          f"merges = {r['nodes_plus_merges']}, {r['map_sessions']} sessions, {r['components']} component(s)")
+    for k, parts in enumerate(r["time_ms_by_session"], 1):
+        text = ", ".join(f"{name} {v['median']:.1f}/{v['p95']:.1f}/{v['max']:.0f}" for name, v in parts.items())
+        print(f"  session {k} ms median/p95/max: {text}")
+
+
 def simulated_bags(out: Path) -> dict[str, Path]:
     """The default (compressed) and --raw-images small session 1, as ``rtabmap-ros2 simulate`` writes them."""
     from rtabmap_ros2.sim.simulate import simulate
@@ -154,8 +285,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="fewer conversion repeats")
     parser.add_argument("--skip-latency", action="store_true", help="conversion only")
     parser.add_argument("--rate", type=float, default=1.0, help="playback speed of the replays (1 = real time)")
+    parser.add_argument("--two-sessions-only", action="store_true", help="section 3 only")
+    parser.add_argument("--rates", type=float, nargs="+", default=TWO_SESSION_RATES,
+                        help="playback speeds of section 3")
     args = parser.parse_args(argv)
 
+    old = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    if args.two_sessions_only:
+        import tempfile
+
+        from rtabmap_ros2.sim.simulate import simulate
+
+        runs = []
+        with tempfile.TemporaryDirectory() as tmp:
+            simulate(Path(tmp), sessions=2, small=True, seed=TWO_SESSION_SEED, raw_images=True,
+                     laser_mount=LASER_MOUNT, camera_mount=CAMERA_MOUNT, tf_static=False)
+            bags = [Path(tmp) / "session_1", Path(tmp) / "session_2"]
+            for rate in args.rates:
+                r = two_session_replay(bags, rate)
+                if r is not None:
+                    runs.append(r)
+                    _print_two_sessions(r)
+        RESULTS.write_text(json.dumps({**old, "two_sessions": runs}, indent=2))
+        print(f"wrote {RESULTS}")
+        return 0
     results: dict = {"conversion": bench_conversion(30 if args.quick else 200)}
     print(f"{'conversion (640x480)':40s} {'median ms':>10s} {'p95 ms':>10s}")
     for name, r in results["conversion"].items():
@@ -181,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{kind:12s} {qos:12s} {r['frames_played']!s:>7s} {r['sets_synchronised']:7d} "
                           f"{r['frames_processed']:9d} {r['processed_ratio']:6.0%}")
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(results, indent=2))
+    RESULTS.write_text(json.dumps({**old, **results}, indent=2))
     print(f"wrote {RESULTS}")
     return 0
 

@@ -1,7 +1,19 @@
 """Pose graph optimisers (gtsam LM, Gauss-Newton, dogleg) on the community benchmarks, and DCS.
 
-Usage: ``python bench/bench_optimizers.py [--quick]``. Prints a table and writes
+Usage: ``python bench/bench_optimizers.py [--quick] [--only-gtsam]``. Prints tables and writes
 ``bench/results/optimizers.json``.
+
+0. Against GTSAM's own Levenberg-Marquardt (issue 33), whole process: ``rtabmap-ros2 optimize
+   IN OUT`` against ``bench/gtsam_lm.py IN OUT`` (``gtsam.readG2o`` + LM at GTSAM's defaults +
+   ``gtsam.writeG2o``), each in its own Python process from the same start (CSAIL, edges only:
+   both from the same file with the chained vertices added), run alternately, median wall time of
+   3 runs (1 with --quick) and the ratio ours / GTSAM measured in this run. Both results are scored
+   by one evaluator written here in numpy (not our optimiser's code): the g2o chi2 of the file,
+   sum over edges of ``e' I e`` with g2o's own error (SE2: x, y, theta of ``Z^-1 Ti^-1 Tj``; SE3:
+   translation and quaternion vector part, ``w >= 0``) and the file's information as it is; and by
+   GTSAM's objective (2 x the error of ``readG2o``'s graph), which reads SE3 rotation information as
+   on angles, 4 x g2o's weight. Also on "cubicle-like" copies of the 3D graphs (every 4th edge
+   given an indefinite information matrix, as ``test/integration/test_optimize_cli.py`` makes them).
 
 1. For each graph of ``shared/data/posegraphs``: chi2 initial / final, iterations and time (median
    of 3 runs) of each optimiser, root = first vertex, no robust kernel. Baseline: LM, the default.
@@ -17,8 +29,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
+import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +55,17 @@ OPTIMIZERS = ["lm", "gn", "dogleg"]
 FALSE_LOOPS = 50
 PHI_SWEEP = [1.0, 10.0, 100.0, 1000.0]
 SEED = 7
+GTSAM_LM = REPO / "bench" / "gtsam_lm.py"
+# Graphs of section 0: the benchmarks, then cubicle-like copies ("<graph>-indefinite").
+VERSUS_GRAPHS = GRAPHS + ["smallGrid3D-indefinite", "parking-garage-indefinite", "sphere2500-indefinite"]
+QUICK_VERSUS_GRAPHS = ["intel", "CSAIL", "smallGrid3D", "parking-garage", "parking-garage-indefinite"]
+# Cubicle-like copies: every INDEFINITE_EVERY-th SE3 edge gets an x-qx information term
+# INDEFINITE_CORRELATION x sqrt(I_xx I_qxqx), which makes that 2x2 block's determinant negative.
+INDEFINITE_EVERY = 4
+INDEFINITE_CORRELATION = 1.2
+# Targets of issue 33 (against GTSAM LM, same run).
+CHI2_TOLERANCE = 0.01
+TIME_RATIO_TARGET = 1.5
 
 
 def run_graph(name: str, repeats: int, iterations: int) -> list[dict]:
@@ -72,6 +99,168 @@ def _fmt(row: dict) -> str:
         return f"{head} FAILED: {row['failed'][:70]}"
     return (f"{head} {row['chi2_initial']:>12.5g} {row['chi2_final']:>12.6g} {row['iterations']:>5} "
             f"{row['time_s']:>8.3f}")
+
+
+# -- 0. against GTSAM LM, whole process -----------------------------------------------------------
+
+def _start_file(name: str, folder: Path) -> Path:
+    """The g2o file both optimisers start from: the benchmark itself, CSAIL with its chained vertices
+    added (it has edges only, which ``gtsam.readG2o`` cannot start from), or a cubicle-like copy."""
+    base = name.removesuffix("-indefinite")
+    src = DATA / f"{base}.g2o"
+    lines = src.read_text().splitlines()
+    if not any(line.startswith("VERTEX") for line in lines):
+        poses, _, planar = read_g2o(src)
+        out = folder / f"{name}.g2o"
+        from rtabmap_ros2.core import transforms
+        vertices = []
+        for node_id in sorted(poses):
+            if planar:
+                x, y, yaw = transforms.to_xy_yaw(poses[node_id])
+                vertices.append(f"VERTEX_SE2 {node_id} {x:.17g} {y:.17g} {yaw:.17g}")
+            else:
+                t, q = poses[node_id][:3, 3], transforms.quat_xyzw(poses[node_id])
+                vertices.append(f"VERTEX_SE3:QUAT {node_id} " + " ".join(f"{v:.17g}" for v in [*t, *q]))
+        out.write_text("\n".join(vertices + lines) + "\n")
+        return out
+    if not name.endswith("-indefinite"):
+        return src
+    out, edge = [], 0
+    for line in lines:
+        f = line.split()
+        if f and f[0] == "EDGE_SE3:QUAT":
+            edge += 1
+            if edge % INDEFINITE_EVERY == 0:
+                upper = [float(v) for v in f[10:31]]
+                upper[3] = INDEFINITE_CORRELATION * np.sqrt(upper[0] * upper[15])   # (x, qx)
+                line = " ".join(f[:10] + [f"{v:.17g}" for v in upper])
+        out.append(line)
+    path = folder / f"{name}.g2o"
+    path.write_text("\n".join(out) + "\n")
+    return path
+
+
+def _vertices(path: Path) -> tuple[dict[int, np.ndarray], bool]:
+    """Vertex poses of a g2o file as 4x4 arrays (numpy only), and whether the file is SE2."""
+    from rtabmap_ros2.core import transforms
+
+    poses, planar = {}, True
+    for line in path.read_text().splitlines():
+        f = line.split()
+        if f and f[0] == "VERTEX_SE2":
+            poses[int(f[1])] = transforms.from_xy_yaw(*map(float, f[2:5]))
+        elif f and f[0] == "VERTEX_SE3:QUAT":
+            planar = False
+            v = [float(x) for x in f[2:9]]
+            poses[int(f[1])] = transforms.from_xyz_quat_xyzw(v[:3], v[3:])
+    return poses, planar
+
+
+def g2o_chi2(graph: Path, poses: dict[int, np.ndarray]) -> float:
+    """The g2o chi2 of ``graph``'s edges at ``poses``: sum of ``e' I e``, g2o's error and the
+    file's information as it is (indefinite ones included), vectorised here, independent of
+    ``rtabmap_ros2.core.optimizer``."""
+    from scipy.spatial.transform import Rotation
+
+    rows = [line.split() for line in graph.read_text().splitlines()]
+    se2 = [r for r in rows if r and r[0] == "EDGE_SE2"]
+    se3 = [r for r in rows if r and r[0] == "EDGE_SE3:QUAT"]
+    edges = se2 or se3
+    ids = np.array([[int(r[1]), int(r[2])] for r in edges])
+    values = np.array([[float(v) for v in r[3:]] for r in edges])
+    dim = 3 if se2 else 6
+    n_meas = 3 if se2 else 7
+    upper = values[:, n_meas:]
+    info = np.zeros((len(edges), dim, dim))
+    iu = np.triu_indices(dim)
+    info[:, iu[0], iu[1]] = upper
+    info[:, iu[1], iu[0]] = upper
+    Ti = np.stack([poses[i] for i in ids[:, 0]])
+    Tj = np.stack([poses[j] for j in ids[:, 1]])
+    Z = np.tile(np.eye(4), (len(edges), 1, 1))
+    if se2:
+        c, s = np.cos(values[:, 2]), np.sin(values[:, 2])
+        Z[:, 0, 0], Z[:, 0, 1], Z[:, 1, 0], Z[:, 1, 1] = c, -s, s, c
+        Z[:, :2, 3] = values[:, :2]
+    else:
+        Z[:, :3, :3] = Rotation.from_quat(values[:, 3:7]).as_matrix()
+        Z[:, :3, 3] = values[:, :3]
+    delta = np.linalg.inv(Z) @ np.linalg.inv(Ti) @ Tj
+    if se2:
+        e = np.column_stack([delta[:, 0, 3], delta[:, 1, 3], np.arctan2(delta[:, 1, 0], delta[:, 0, 0])])
+    else:
+        q = Rotation.from_matrix(delta[:, :3, :3]).as_quat()      # x, y, z, w
+        q *= np.where(q[:, 3:] < 0, -1.0, 1.0)
+        e = np.column_stack([delta[:, :3, 3], q[:, :3]])
+    return float(np.einsum("ni,nij,nj->", e, info, e))
+
+
+def gtsam_objective(graph: Path, poses_file: Path) -> float:
+    """GTSAM's chi2 (2 x the error of ``gtsam.readG2o``'s graph of ``graph``) at the vertices of
+    ``poses_file``."""
+    import gtsam
+
+    _, planar = _vertices(graph)
+    factors, _ = gtsam.readG2o(str(graph), not planar)
+    _, values = gtsam.readG2o(str(poses_file), not planar)
+    return 2.0 * factors.error(values)
+
+
+def _timed_process(command: list[str], pycache: Path) -> tuple[float, str]:
+    # Bytecode cached (outside the tree) as an installed package has it: with
+    # PYTHONDONTWRITEBYTECODE set, every run compiled our modules again (0.03-0.05 s).
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env.update(PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), PYTHONPYCACHEPREFIX=str(pycache))
+    t0 = time.perf_counter()
+    done = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
+    elapsed = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} failed: {done.stderr.strip()[-500:]}")
+    return elapsed, done.stdout
+
+
+def versus_gtsam(name: str, repeats: int, folder: Path) -> dict:
+    """Section 0 for one graph: both optimisers, whole process, alternately; scored by one evaluator."""
+    src = _start_file(name, folder)
+    ours_out, gtsam_out = folder / f"{name}.ours.g2o", folder / f"{name}.gtsam.g2o"
+    ours_times, gtsam_times = [], []
+    ours = [sys.executable, "-m", "rtabmap_ros2", "optimize", str(src), str(ours_out)]
+    bare = [sys.executable, str(GTSAM_LM), str(src), str(gtsam_out)]
+    pycache = folder / "pycache"
+    if not pycache.exists():   # first graph: byte-compile both once, untimed
+        _timed_process(ours, pycache)
+        _timed_process(bare, pycache)
+    for _ in range(repeats):
+        t, ours_stdout = _timed_process(ours, pycache)
+        ours_times.append(t)
+        t, gtsam_stdout = _timed_process(bare, pycache)
+        gtsam_times.append(t)
+    start, planar = _vertices(src)
+    ours_poses, _ = _vertices(ours_out)
+    gtsam_poses, _ = _vertices(gtsam_out)
+    row = {"graph": name, "vertices": len(start), "planar": planar,
+           "g2o_chi2_start": g2o_chi2(src, start),
+           "g2o_chi2_ours": g2o_chi2(src, ours_poses), "g2o_chi2_gtsam": g2o_chi2(src, gtsam_poses),
+           "gtsam_chi2_ours": gtsam_objective(src, ours_out), "gtsam_chi2_gtsam": gtsam_objective(src, gtsam_out),
+           "iterations_ours": int(_field(ours_stdout, "iterations:")),
+           "iterations_gtsam": int(_field(gtsam_stdout, "iterations:")),
+           "time_s_ours": statistics.median(ours_times), "time_s_gtsam": statistics.median(gtsam_times),
+           "times_s_ours": ours_times, "times_s_gtsam": gtsam_times}
+    row["chi2_ratio"] = row["g2o_chi2_ours"] / row["g2o_chi2_gtsam"]
+    row["time_ratio"] = row["time_s_ours"] / row["time_s_gtsam"]
+    row["meets_target"] = bool(row["chi2_ratio"] <= 1 + CHI2_TOLERANCE and row["time_ratio"] <= TIME_RATIO_TARGET)
+    return row
+
+
+def _field(stdout: str, label: str) -> str:
+    return next(line.split(label, 1)[1].split()[0] for line in stdout.splitlines() if label in line)
+
+
+def _fmt_versus(row: dict) -> str:
+    return (f"{row['graph']:<26} {row['vertices']:>6} {row['g2o_chi2_ours']:>12.6g} {row['g2o_chi2_gtsam']:>12.6g} "
+            f"{row['chi2_ratio']:>7.4f} {row['gtsam_chi2_ours']:>12.6g} {row['gtsam_chi2_gtsam']:>12.6g} "
+            f"{row['iterations_ours']:>4}/{row['iterations_gtsam']:<4} {row['time_s_ours']:>7.2f} "
+            f"{row['time_s_gtsam']:>7.2f} {row['time_ratio']:>6.2f} {'ok' if row['meets_target'] else 'MISSED'}")
 
 
 def robustness(repeats: int, phis: list[float]) -> dict:
@@ -125,11 +314,27 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="4 graphs, 1 run each")
     parser.add_argument("--iterations", type=int, default=100)
+    parser.add_argument("--only-gtsam", action="store_true", help="section 0 only (against GTSAM LM)")
     args = parser.parse_args(argv)
     if not DATA.is_dir():
         print(f"no pose graphs at {DATA}", file=sys.stderr)
         return 1
     repeats = 1 if args.quick else 3
+    print("Against GTSAM LM, whole process (median of %d), chi2 scored by one evaluator" % repeats)
+    print(f"{'graph':<26} {'nodes':>6} {'g2o ours':>12} {'g2o gtsam':>12} {'ratio':>7} {'gtsam-obj o':>12} "
+          f"{'gtsam-obj g':>12} {'iter o/g':>9} {'ours s':>7} {'gtsam s':>7} {'x':>6}")
+    versus = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in QUICK_VERSUS_GRAPHS if args.quick else VERSUS_GRAPHS:
+            if (DATA / f"{name.removesuffix('-indefinite')}.g2o").exists():
+                versus.append(versus_gtsam(name, repeats, Path(tmp)))
+                print(_fmt_versus(versus[-1]), flush=True)
+    plain = [r for r in versus if not r["graph"].endswith("-indefinite")]
+    summed = sum(r["time_s_ours"] for r in plain) / max(sum(r["time_s_gtsam"] for r in plain), 1e-9)
+    print(f"summed time over the {len(plain)} benchmarks: {summed:.2f} x GTSAM's")
+    if args.only_gtsam:
+        _write({"versus_gtsam": versus, "versus_gtsam_summed_time_ratio": summed, "quick": args.quick})
+        return 0
     print(f"{'graph':<15} {'nodes':>6} {'links':>6} {'opt':<7} {'chi2 init':>12} {'chi2 final':>12} "
           f"{'iter':>5} {'time s':>8}")
     rows = []
@@ -145,11 +350,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  DCS phi {float(phi):<6g} ATE {r['ate_vs_clean_m']:8.4f} m  rejected false {r['rejected_false']}/"
               f"{FALSE_LOOPS}  rejected true {r['rejected_true']}  time {r['time_s']:.2f} s  | clean graph: "
               f"{r['clean_graph_rejected_true']} rejected, ATE {r['clean_graph_ate_m']:.4f} m")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps({"graphs": rows, "robustness": robust, "quick": args.quick,
-                                   "iterations": args.iterations}, indent=2))
-    print(f"wrote {RESULTS}")
+    _write({"versus_gtsam": versus, "versus_gtsam_summed_time_ratio": summed, "graphs": rows,
+            "robustness": robust, "quick": args.quick, "iterations": args.iterations})
     return 0
+
+
+def _write(results: dict) -> None:
+    """Write ``results`` into RESULTS, keeping the sections this run did not measure."""
+    old = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps({**old, **results}, indent=2))
+    print(f"wrote {RESULTS}")
 
 
 if __name__ == "__main__":

@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     poses, links, planar = read_g2o(args.input)
     root = min(poses)
     params = GraphParams(optimizer=args.optimizer, iterations=args.iterations, robust=args.robust)
-    result = optimize(poses, links, root, params, planar)
+    result = optimize(poses, links, root, params, planar, cache=False)
     rejected = {id(link) for link in result.rejected}  # the same Link objects as in ``links``
     kept = [link for link in links if id(link) not in rejected]
     write_g2o(args.output, result.poses, kept, planar)

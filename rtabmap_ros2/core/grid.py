@@ -96,11 +96,13 @@ class GridAccumulator:
         self.resolution = params.resolution
         self.range_max = params.range_max
         self._origin_cell = np.zeros(2, np.int64)  # cell index of array element (0, 0)
+        self._anchor_cell: np.ndarray | None = None   # _origin_cell at the first scan (see add)
         self._hits = np.zeros((0, 0), np.int32)
         self._misses = np.zeros((0, 0), np.int32)
 
-    def add(self, T_map_base: np.ndarray, scan: LaserScan) -> None:
-        """Ray-cast one scan taken at ``T_map_base`` (4x4) into the counts."""
+    def add(self, T_map_base: np.ndarray, scan: LaserScan, weight: int = 1) -> None:
+        """Ray-cast one scan taken at ``T_map_base`` (4x4) into the counts; ``weight`` -1 takes
+        back a scan added before at the same pose (the counts are sums: exactly)."""
         res = self.resolution
         origin_pts, end_pts, is_hit = _beams_map(T_map_base, scan, self.range_max)
         if not len(end_pts):
@@ -109,17 +111,24 @@ class GridAccumulator:
         hi = np.floor(np.maximum(origin_pts.max(axis=0), end_pts.max(axis=0)) / res).astype(np.int64)
         self._ensure(lo - GRID_MARGIN_CELLS, hi + GRID_MARGIN_CELLS)
         height, width = self._hits.shape
-        base = self._origin_cell * res
+        if self._anchor_cell is None:
+            self._anchor_cell = self._origin_cell.copy()
+        anchor = self._anchor_cell
+        base = anchor * res
+        shift = anchor - self._origin_cell
 
         def flat(points: np.ndarray) -> np.ndarray:
-            cells = np.floor((points - base) / res).astype(np.int64)
+            # Cells counted from the first canvas's corner (the anchor), then shifted to the
+            # current canvas: a point falls in the same cell however the canvas grew since, so a
+            # scan taken back (weight -1) leaves exactly the counts it added.
+            cells = np.floor((points - base) / res).astype(np.int64) + shift
             return cells[:, 1] * width + cells[:, 0]
 
         end_cells = flat(end_pts)
         hits = self._hits.reshape(-1)
         misses = self._misses.reshape(-1)
         # Hits: the end cell of every beam with a return.
-        hits += np.bincount(end_cells[is_hit], minlength=hits.size).astype(np.int32)
+        hits += weight * np.bincount(end_cells[is_hit], minlength=hits.size).astype(np.int32)
         # Misses: cells crossed by each beam before its end (ray casting, SAMPLES_PER_CELL per cell),
         # in chunks of about MAX_SAMPLES_PER_CHUNK samples (bounded memory).
         vec = end_pts - origin_pts
@@ -128,7 +137,7 @@ class GridAccumulator:
         bounds = np.flatnonzero(np.diff(chunk_of)) + 1
         for lo_b, hi_b in zip(np.r_[0, bounds], np.r_[bounds, len(vec)]):
             _cast_misses(origin_pts[lo_b:hi_b], vec[lo_b:hi_b], n_samples[lo_b:hi_b], end_cells[lo_b:hi_b],
-                         flat, misses)
+                         flat, misses, weight)
 
     def _ensure(self, lo_cell: np.ndarray, hi_cell: np.ndarray) -> None:
         """Grow the canvas (with slack, so growth is rare) to hold cells lo_cell..hi_cell."""
@@ -291,8 +300,8 @@ def _dilated(cells: np.ndarray) -> np.ndarray:
 
 
 def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, end_cells: np.ndarray,
-                 flat, miss_count: np.ndarray) -> None:
-    """Add one miss per cell crossed by each beam before its end cell (ray casting)."""
+                 flat, miss_count: np.ndarray, weight: int = 1) -> None:
+    """Add ``weight`` misses per cell crossed by each beam before its end cell (ray casting)."""
     total = int(n_samples.sum())
     if not total:
         return
@@ -304,7 +313,7 @@ def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, en
     first = np.ones(total, bool)
     first[1:] = (cells[1:] != cells[:-1]) | (beam[1:] != beam[:-1])
     keep = first & (cells != end_cells[beam])
-    miss_count += np.bincount(cells[keep], minlength=miss_count.size).astype(np.int32)
+    miss_count += weight * np.bincount(cells[keep], minlength=miss_count.size).astype(np.int32)
 
 
 def _samples_per_beam(vec: np.ndarray, cell: float) -> np.ndarray:

@@ -118,22 +118,36 @@ def gtsam_information(information: np.ndarray, planar: bool) -> np.ndarray:
     return 0.5 * (info + info.T)
 
 
-def _noise(information: np.ndarray, planar: bool, link: Link | None = None):
-    """gtsam noise model of a link's information; OptimizationError naming the link when unusable."""
-    import gtsam
-
-    raw = np.asarray(information, dtype=np.float64)
-    what = f"link {link.from_id} -> {link.to_id}" if link is not None else "link"
-    if not np.all(np.isfinite(raw)):
-        raise OptimizationError(f"{what}: information matrix has NaN or inf values ({raw.tolist()})")
-    if not is_symmetric(raw):
-        raise OptimizationError(f"{what}: information matrix is not symmetric ({raw.tolist()})")
-    info = gtsam_information(raw, planar)
-    if np.any(np.linalg.eigvalsh(info) <= 0):
-        raise OptimizationError(
-            f"{what}: information matrix is not positive definite ({info.tolist()}): check the link's "
-            "covariance (every axis needs a finite variance > 0)")
-    return gtsam.noiseModel.Gaussian.Information(info)
+def _checked_information(links: list[Link], planar: bool) -> np.ndarray:
+    """The links' information in gtsam's tangent order ((n, 3, 3) or (n, 6, 6)), every link
+    checked at once (transform and information finite, information symmetric and positive
+    definite); OptimizationError naming the first link that fails."""
+    raw = np.stack([np.asarray(link.information, dtype=np.float64) for link in links])
+    steps = np.stack([np.asarray(link.T_from_to, dtype=np.float64) for link in links])
+    scale = np.maximum(np.abs(raw).max(axis=(1, 2), initial=0.0), np.finfo(float).tiny)
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(raw).all(axis=(1, 2))
+        symmetric = np.abs(raw - raw.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0) <= SYMMETRY_RTOL * scale
+    order = POSE2_FROM_OURS if planar else POSE3_FROM_OURS
+    info = raw[:, order][:, :, order]
+    info = 0.5 * (info + info.transpose(0, 2, 1))
+    positive = np.zeros(len(links), dtype=bool)
+    positive[finite] = np.linalg.eigvalsh(info[finite]).min(axis=1) > 0
+    steps_finite = np.isfinite(steps).all(axis=(1, 2))
+    bad = ~(finite & symmetric & positive & steps_finite)
+    if bad.any():
+        i = int(np.argmax(bad))
+        what = f"link {links[i].from_id} -> {links[i].to_id}"
+        if not finite[i]:
+            raise OptimizationError(f"{what}: information matrix has NaN or inf values ({raw[i].tolist()})")
+        if not symmetric[i]:
+            raise OptimizationError(f"{what}: information matrix is not symmetric ({raw[i].tolist()})")
+        if not positive[i]:
+            raise OptimizationError(
+                f"{what}: information matrix is not positive definite ({info[i].tolist()}): check the link's "
+                "covariance (every axis needs a finite variance > 0)")
+        raise OptimizationError(f"{what}: transform has NaN or inf values")
+    return info
 
 
 # gtsam objects made from arrays or links still alive ((kind, id) -> (weak reference, planar,
@@ -161,29 +175,57 @@ def release(links) -> None:
     """Drop the cached gtsam objects of links that will not be optimised soon (their nodes left
     WM); they are made again if the links come back."""
     for link in links:
-        for kind, source in (("factor", link), ("robust factor", link), ("noise", link.information),
-                             ("pose", link.T_from_to)):
+        for kind, source in (("factor", link), ("robust factor", link), ("noise", link.information)):
             hit = _GTSAM_CACHE.get((kind, id(source)))
             if hit is not None and hit[0]() is source:
                 del _GTSAM_CACHE[(kind, id(source))]
 
 
-def _cached_noise(link: Link, planar: bool):
-    """The link's noise model (OptimizationError naming the link when its information is unusable)."""
-    return _cached("noise", link.information, planar, lambda information, p: _noise(information, p, link))
-
-
-def _plain_factor(link: Link, planar: bool):
-    if not np.all(np.isfinite(link.T_from_to)):
-        raise OptimizationError(f"link {link.from_id} -> {link.to_id}: transform has NaN or inf values")
-    return _between(link, planar, _cached_noise(link, planar))
-
-
-def _robust_factor(link: Link, planar: bool):
+def _plain_factors(links: list[Link], planar: bool, cache: bool = True) -> dict[int, object]:
+    """id(link) -> the link's Gaussian ``BetweenFactor``, made once per link (cached unless
+    ``cache`` is False): the links not made yet are checked together
+    (:func:`_checked_information`), then one noise model per information array."""
     import gtsam
 
-    robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), _cached_noise(link, planar))
+    factors = {}
+    missing = []
+    for link in links:
+        hit = _GTSAM_CACHE.get(("factor", id(link))) if cache else None
+        if hit is not None and hit[0]() is link and hit[1] == planar:
+            factors[id(link)] = hit[2]
+        else:
+            missing.append(link)
+    if missing:
+        infos = _checked_information(missing, planar)
+        steps = _gtsam_poses(np.stack([link.T_from_to for link in missing]), planar)
+        between = gtsam.BetweenFactorPose2 if planar else gtsam.BetweenFactorPose3
+        for link, info, step in zip(missing, infos, steps):
+            if not cache:
+                factors[id(link)] = between(link.from_id, link.to_id, step,
+                                            gtsam.noiseModel.Gaussian.Information(info))
+                continue
+            noise = _cached("noise", link.information, planar,
+                            lambda _, __, info=info: gtsam.noiseModel.Gaussian.Information(info))
+            factors[id(link)] = _cached("factor", link, planar,
+                                        lambda l, _, step=step, noise=noise: between(l.from_id, l.to_id, step, noise))
+    return factors
+
+
+def _robust_factor(link: Link, planar: bool, cache: bool = True):
+    """The link's factor with DCS on its noise model (made after its plain factor, which checked it
+    and cached the noise model)."""
+    import gtsam
+
+    noise = (_cached("noise", link.information, planar, lambda information, p: _checked_noise(link, p)) if cache
+             else _checked_noise(link, planar))
+    robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.DCS(DCS_PHI), noise)
     return _between(link, planar, robust)
+
+
+def _checked_noise(link: Link, planar: bool):
+    import gtsam
+
+    return gtsam.noiseModel.Gaussian.Information(_checked_information([link], planar)[0])
 
 
 def is_symmetric(matrix: np.ndarray) -> bool:
@@ -215,7 +257,16 @@ def _between(link: Link, planar: bool, noise):
     import gtsam
 
     factor = gtsam.BetweenFactorPose2 if planar else gtsam.BetweenFactorPose3
-    return factor(link.from_id, link.to_id, _cached("pose", link.T_from_to, planar, _to_gtsam), noise)
+    return factor(link.from_id, link.to_id, _to_gtsam(link.T_from_to, planar), noise)
+
+
+def _gtsam_poses(T: np.ndarray, planar: bool) -> list:
+    """gtsam Pose2 (x, y, yaw) or Pose3 of each of (n, 4, 4) transforms."""
+    import gtsam
+
+    if planar:
+        return [gtsam.Pose2(x, y, yaw) for x, y, yaw in _xy_yaws(T).tolist()]
+    return [gtsam.Pose3(t) for t in np.asarray(T, dtype=np.float64)]
 
 
 def _poses_of(values, planar: bool) -> dict[int, np.ndarray]:
@@ -241,7 +292,7 @@ def _poses_of(values, planar: bool) -> dict[int, np.ndarray]:
 # -- optimisation --------------------------------------------------------------------------------
 
 def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, params: GraphParams,
-             planar: bool, rejected_before: Collection[tuple[int, int]] = ()) -> OptimizationResult:
+             planar: bool, rejected_before: Collection[tuple[int, int]] = (), cache: bool = True) -> OptimizationResult:
     """Optimise a pose graph with the root held at its given pose.
 
     Args:
@@ -257,6 +308,9 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
             that agree with it. Without it a re-solve of a local map first solved with every
             link it had rejected before, which DCS switched off again, then solved a second
             time without them: two solves where one does.
+        cache: keep the gtsam objects made for the links for later calls with the same links (a
+            local map is solved again at every loop closure); a one-off solve (``rtabmap-ros2
+            optimize``) skips the bookkeeping (0.2 s of city10000's 20,687 links).
 
     Returns:
         :class:`OptimizationResult`.
@@ -283,14 +337,15 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
                                   [], time.perf_counter() - start)
 
     initial = gtsam.Values()
-    for node_id, pose in poses.items():
-        initial.insert(node_id, _to_gtsam(pose, planar))
+    for node_id, pose in zip(poses, _gtsam_poses(np.stack(list(poses.values())), planar)):
+        initial.insert(node_id, pose)
     # One Gaussian factor per link, made once: chi2 and the DCS scales are read from them.
-    plain = {id(link): _cached("factor", link, planar, _plain_factor) for link in used}
+    plain = _plain_factors(used, planar, cache)
     robust = {}
     if params.robust:
         # DCS on loop closures (Agarwal et al. 2013), the paper's successors' choice.
-        robust = {id(link): _cached("robust factor", link, planar, _robust_factor)
+        robust = {id(link): (_cached("robust factor", link, planar, _robust_factor) if cache
+                             else _robust_factor(link, planar, cache=False))
                   for link in used if link.type.is_loop_closure}
     factors = {**plain, **robust}
     chi2_initial = _chi2(plain.values(), initial)
@@ -412,12 +467,6 @@ def _upper(matrix: np.ndarray) -> list[float]:
     return [float(matrix[i, j]) for i in range(n) for j in range(i, n)]
 
 
-def _from_upper(values: list[float], n: int) -> np.ndarray:
-    m = np.zeros((n, n))
-    m[np.triu_indices(n)] = values
-    return m + np.triu(m, 1).T
-
-
 def _se3_g2o_scaling() -> np.ndarray:
     """Diagonal map from our (x, y, z, roll, pitch, yaw) errors to g2o's (x, y, z, qx, qy, qz)."""
     return np.diag([1.0, 1.0, 1.0] + [G2O_QUAT_PER_ANGLE] * 3)
@@ -443,10 +492,6 @@ def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
             to a vertex the file does not define (naming the edge).
     """
     path = Path(path)
-    poses: dict[int, np.ndarray] = {}
-    edges: list[tuple[int, Link]] = []      # (line number, link)
-    projected: list[tuple[int, Link]] = []
-    planar: bool | None = None
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -457,70 +502,87 @@ def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
         raise OptimizationError(
             f"{path} is not a g2o text file (byte {exc.start} is not text): expected lines such as "
             "'VERTEX_SE2 id x y theta' and 'EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33'") from exc
-    S = _se3_g2o_scaling()
+    # Lines grouped by element (line numbers kept for the messages), then each group read at once.
+    groups: dict[str, tuple[list[int], list[list[str]]]] = {tag: ([], []) for tag in _G2O_FIELDS}
+    planar: bool | None = None
     for number, line in enumerate(lines, 1):
         f = line.split()
-        if not f or f[0].startswith("#"):
+        if not f or f[0].startswith("#") or f[0] in _G2O_IGNORED:
             continue
         tag = f[0]
         try:
-            if tag in ("FIX", "PARAMS_SE3OFFSET"):
-                continue
             if tag not in _G2O_FIELDS:
                 raise ValueError(f"unsupported element {tag}")
             element_planar = tag.endswith("SE2")
             if planar is not None and element_planar != planar:
                 raise ValueError(f"{tag} in a file of {'SE2' if planar else 'SE3:QUAT'} elements")
-            planar = element_planar
-            ids, v = _g2o_numbers(f, tag)
-            if tag == "VERTEX_SE2":
-                poses[ids[0]] = transforms.from_xy_yaw(*v)
-            elif tag == "VERTEX_SE3:QUAT":
-                poses[ids[0]] = transforms.from_xyz_quat_xyzw(v[:3], v[3:])
-            else:
-                i, j = ids
-                if tag == "EDGE_SE2":
-                    T = transforms.from_xy_yaw(*v[:3])
-                    info3, was_projected = _g2o_information(_from_upper(v[3:], 3))
-                    info = np.eye(6) * info3[0, 0]
-                    info[np.ix_(POSE2_FROM_OURS, POSE2_FROM_OURS)] = info3
-                else:
-                    T = transforms.from_xyz_quat_xyzw(v[:3], v[3:7])
-                    info_g2o, was_projected = _g2o_information(_from_upper(v[7:], 6))
-                    info = S @ info_g2o @ S
-                link = Link(i, j, _g2o_type(i, j), T, info)
-                edges.append((number, link))
-                if was_projected:
-                    projected.append((number, link))
-        except (ValueError, IndexError) as exc:
+        except ValueError as exc:
             raise OptimizationError(f"{path}:{number}: cannot read {line.strip()[:60]!r}: {exc}") from exc
+        planar = element_planar
+        numbers, rows = groups[tag]
+        numbers.append(number)
+        rows.append(f)
     if planar is None:
         raise OptimizationError(f"{path} holds no vertex or edge")
-    links = [link for _, link in edges]
+    vertex_tag, edge_tag = ("VERTEX_SE2", "EDGE_SE2") if planar else ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT")
+    numbers, rows = groups[vertex_tag]
+    vertex_ids, v = _g2o_block(path, lines, vertex_tag, numbers, rows)
+    poses: dict[int, np.ndarray] = {}
+    if len(rows):
+        if planar:
+            vertex_poses = transforms.from_xy_yaws(v)
+        else:
+            vertex_poses = _g2o_transforms(path, lines, numbers, v[:, :3], v[:, 3:7])
+        poses = dict(zip(vertex_ids[:, 0].tolist(), vertex_poses))
+    edge_numbers, rows = groups[edge_tag]
+    ids, v = _g2o_block(path, lines, edge_tag, edge_numbers, rows)
+    if planar:
+        steps = transforms.from_xy_yaws(v[:, :3])
+        upper = v[:, 3:]
+    else:
+        steps = _g2o_transforms(path, lines, edge_numbers, v[:, :3], v[:, 3:7])
+        upper = v[:, 7:]
+    info, projected_at = _g2o_information(path, lines, edge_numbers, upper, 3 if planar else 6)
+    if planar:
+        # Pose2 uses x, y, yaw; z, roll, pitch get the x information (unused).
+        information = np.eye(6) * info[:, :1, :1]
+        rows, cols = np.ix_(POSE2_FROM_OURS, POSE2_FROM_OURS)
+        information[:, rows, cols] = info
+    else:
+        scale = np.diag(_se3_g2o_scaling())
+        information = info * np.outer(scale, scale)
+    pairs = ids.tolist()
+    links = [Link(i, j, _g2o_type(i, j), T, I) for (i, j), T, I in zip(pairs, steps, information)]
     if poses:
-        for number, link in edges:
-            missing = [k for k in (link.from_id, link.to_id) if k not in poses]
-            if missing:
-                raise OptimizationError(
-                    f"{path}:{number}: edge {link.from_id} -> {link.to_id} refers to vertex {missing[0]}, "
-                    "which the file does not define (no VERTEX line): fix or remove the edge")
+        known = np.array(sorted(poses), dtype=np.int64)
+        missing = ~np.isin(ids, known)
+        if missing.any():
+            k = int(np.argmax(missing.any(axis=1)))
+            link = links[k]
+            vertex = link.from_id if missing[k, 0] else link.to_id
+            raise OptimizationError(
+                f"{path}:{edge_numbers[k]}: edge {link.from_id} -> {link.to_id} refers to vertex {vertex}, "
+                "which the file does not define (no VERTEX line): fix or remove the edge")
     elif links:
         # Edges only (CSAIL.g2o): initial guess by chaining the edges from the first vertex.
-        first = min(min(l.from_id, l.to_id) for l in links)
+        first = int(ids.min())
         poses = chain_poses(first, transforms.identity(), links)
-    if projected:
-        named = ", ".join(f"line {n} (edge {l.from_id} -> {l.to_id})" for n, l in projected[:G2O_EDGES_NAMED])
-        more = f" and {len(projected) - G2O_EDGES_NAMED} more" if len(projected) > G2O_EDGES_NAMED else ""
+    if projected_at:
+        named = ", ".join(f"line {edge_numbers[k]} (edge {links[k].from_id} -> {links[k].to_id})"
+                          for k in projected_at[:G2O_EDGES_NAMED])
+        more = f" and {len(projected_at) - G2O_EDGES_NAMED} more" if len(projected_at) > G2O_EDGES_NAMED else ""
         logger.warning(
             "%s: %d edge(s) have a symmetric information matrix that is not positive definite, replaced by "
             "the nearest positive definite matrix (eigenvalues clipped at %g x the largest): %s%s",
-            path, len(projected), PD_FLOOR_RATIO, named, more)
+            path, len(projected_at), PD_FLOOR_RATIO, named, more)
     return poses, links, planar
 
 
 # Numbers after the tag of each g2o element: (ids, floats).
 _G2O_FIELDS = {"VERTEX_SE2": (1, 3), "EDGE_SE2": (2, 3 + 6),
                "VERTEX_SE3:QUAT": (1, 7), "EDGE_SE3:QUAT": (2, 7 + 21)}
+# g2o elements read and ignored (the root is the lowest id, not a FIX line).
+_G2O_IGNORED = ("FIX", "PARAMS_SE3OFFSET")
 
 
 def _g2o_numbers(f: list[str], tag: str) -> tuple[list[int], list[float]]:
@@ -536,14 +598,65 @@ def _g2o_numbers(f: list[str], tag: str) -> tuple[list[int], list[float]]:
     return ids, values
 
 
-def _g2o_information(info: np.ndarray) -> tuple[np.ndarray, bool]:
-    """A g2o edge's (symmetric) information, projected when not positive definite: (matrix, projected)."""
-    if np.all(np.linalg.eigvalsh(info) > 0):
-        return info, False
-    nearest = nearest_positive_definite(info)
-    if nearest is None:
-        raise ValueError("information matrix has no positive eigenvalue (no axis carries information)")
-    return nearest, True
+def _g2o_line_error(path: Path, lines: list[str], number: int, reason: str) -> OptimizationError:
+    return OptimizationError(f"{path}:{number}: cannot read {lines[number - 1].strip()[:60]!r}: {reason}")
+
+
+def _g2o_block(path: Path, lines: list[str], tag: str, numbers: list[int],
+               rows: list[list[str]]) -> tuple[np.ndarray, np.ndarray]:
+    """Ids ((n, ids) int64) and values ((n, values) float64) of every line of one element; a bad
+    line is found again line by line (:func:`_g2o_numbers`) to name it."""
+    n_ids, n_values = _G2O_FIELDS[tag]
+    if not rows:
+        return np.zeros((0, n_ids), dtype=np.int64), np.zeros((0, n_values))
+    try:
+        if any(len(f) != 1 + n_ids + n_values for f in rows):
+            raise ValueError("field count")
+        ids = np.array([f[1:1 + n_ids] for f in rows], dtype=np.int64)
+        values = np.array([f[1 + n_ids:] for f in rows], dtype=np.float64)
+        finite = np.isfinite(values).all(axis=1)
+        if not finite.all():
+            raise ValueError("not finite")
+    except (ValueError, OverflowError):
+        for number, f in zip(numbers, rows):
+            try:
+                _g2o_numbers(f, tag)
+            except (ValueError, OverflowError) as exc:
+                raise _g2o_line_error(path, lines, number, str(exc)) from exc
+        raise   # unreachable: the line-by-line reading finds the line
+    return ids, values
+
+
+def _g2o_transforms(path: Path, lines: list[str], numbers: list[int], xyz: np.ndarray,
+                    quat_xyzw: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) transforms of g2o SE3 lines; the line of a quaternion that is no rotation named."""
+    try:
+        return transforms.from_xyz_quats_xyzw(xyz, quat_xyzw)
+    except ValueError:
+        norms = np.linalg.norm(quat_xyzw, axis=1)
+        k = int(np.argmax(~(np.isfinite(norms) & (norms >= 1e-9))))
+        raise _g2o_line_error(path, lines, numbers[k],
+                              f"quaternion {quat_xyzw[k].tolist()} is not a rotation (norm {norms[k]})") from None
+
+
+def _g2o_information(path: Path, lines: list[str], numbers: list[int], upper: np.ndarray,
+                     dim: int) -> tuple[np.ndarray, list[int]]:
+    """(n, dim, dim) symmetric information of g2o edges from their upper triangles, those not
+    positive definite projected (:func:`nearest_positive_definite`); and the indices projected."""
+    info = np.zeros((len(upper), dim, dim))
+    rows, cols = np.triu_indices(dim)
+    info[:, rows, cols] = upper
+    info[:, cols, rows] = upper
+    if not len(info):
+        return info, []
+    projected = np.flatnonzero(~(np.linalg.eigvalsh(info).min(axis=1) > 0)).tolist()
+    for k in projected:
+        nearest = nearest_positive_definite(info[k])
+        if nearest is None:
+            raise _g2o_line_error(path, lines, numbers[k],
+                                  "information matrix has no positive eigenvalue (no axis carries information)")
+        info[k] = nearest
+    return info, projected
 
 
 def _g2o_type(i: int, j: int) -> LinkType:
@@ -552,33 +665,39 @@ def _g2o_type(i: int, j: int) -> LinkType:
 
 def write_g2o(path, poses: dict[int, np.ndarray], links: list[Link], planar: bool) -> None:
     """Write a g2o pose graph (SE2 when ``planar``, else SE3:QUAT); inverse of :func:`read_g2o`."""
-    S = _se3_g2o_scaling()
-    S_inv = np.linalg.inv(S)
-    out: list[str] = []
-    for node_id in sorted(poses):
-        T = poses[node_id]
-        if planar:
-            x, y, yaw = transforms.to_xy_yaw(T)
-            out.append(f"VERTEX_SE2 {node_id} {x:.9g} {y:.9g} {yaw:.9g}")
-        else:
-            q = transforms.quat_xyzw(T)
-            t = T[:3, 3]
-            out.append(f"VERTEX_SE3:QUAT {node_id} " + " ".join(f"{v:.9g}" for v in [*t, *q]))
-    for link in links:
-        if planar:
-            x, y, yaw = transforms.to_xy_yaw(link.T_from_to)
-            info = np.asarray(link.information)[np.ix_(POSE2_FROM_OURS, POSE2_FROM_OURS)]
-            values = [x, y, yaw, *_upper(info)]
-            out.append(f"EDGE_SE2 {link.from_id} {link.to_id} " + " ".join(f"{v:.9g}" for v in values))
-        else:
-            q = transforms.quat_xyzw(link.T_from_to)
-            info = S_inv @ np.asarray(link.information) @ S_inv
-            values = [*link.T_from_to[:3, 3], *q, *_upper(info)]
-            out.append(f"EDGE_SE3:QUAT {link.from_id} {link.to_id} " + " ".join(f"{v:.9g}" for v in values))
+    ids = sorted(poses)
+    T = np.stack([poses[i] for i in ids]) if ids else np.zeros((0, 4, 4))
+    steps = np.stack([link.T_from_to for link in links]) if links else np.zeros((0, 4, 4))
+    info = np.stack([np.asarray(link.information, dtype=np.float64) for link in links]) if links \
+        else np.zeros((0, 6, 6))
+    if planar:
+        vertex_values = _xy_yaws(T)
+        order = POSE2_FROM_OURS
+        edge_values = _xy_yaws(steps)
+    else:
+        vertex_values = np.column_stack([T[:, :3, 3], transforms.quats_xyzw(T)]) if ids else np.zeros((0, 7))
+        scale = 1.0 / np.diag(_se3_g2o_scaling())
+        info = info * np.outer(scale, scale)
+        order = list(range(6))
+        edge_values = np.column_stack([steps[:, :3, 3], transforms.quats_xyzw(steps)]) if links \
+            else np.zeros((0, 7))
+    rows, cols = np.triu_indices(len(order))
+    upper = info[:, np.asarray(order)[rows], np.asarray(order)[cols]]
+    vertex_tag, edge_tag = ("VERTEX_SE2", "EDGE_SE2") if planar else ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT")
+    vertex_line = vertex_tag + " %d" + " %.9g" * vertex_values.shape[1]
+    edge_line = edge_tag + " %d %d" + " %.9g" * (edge_values.shape[1] + upper.shape[1])
+    out = [vertex_line % (i, *row) for i, row in zip(ids, vertex_values.tolist())]
+    out += [edge_line % (link.from_id, link.to_id, *row)
+            for link, row in zip(links, np.column_stack([edge_values, upper]).tolist())]
     try:
         files.write_text(path, "\n".join(out) + "\n")
     except OSError as exc:
         raise OptimizationError(f"cannot write g2o file {path}: {exc.strerror}") from exc
+
+
+def _xy_yaws(T: np.ndarray) -> np.ndarray:
+    """(n, 3) planar parts (x, y, yaw) of (n, 4, 4) transforms."""
+    return np.column_stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])])
 
 
 __all__ = ["OptimizationResult", "gtsam_information", "is_symmetric", "nearest_positive_definite", "optimize",

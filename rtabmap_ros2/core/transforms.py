@@ -56,6 +56,42 @@ def from_xyz_quat_xyzw(xyz, quat_xyzw) -> np.ndarray:
     return T
 
 
+def from_xyz_quats_xyzw(xyz: np.ndarray, quats_xyzw: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) transforms from (n, 3) translations (m) and (n, 4) quaternions (x, y, z, w),
+    each normalised: :func:`from_xyz_quat_xyzw` on many at once.
+
+    Raises:
+        ValueError: naming the index of the first quaternion that is not a rotation (norm < 1e-9
+            or not finite).
+    """
+    q = np.asarray(quats_xyzw, dtype=np.float64).reshape(-1, 4)
+    n = np.linalg.norm(q, axis=1)
+    bad = ~(np.isfinite(n) & (n >= 1e-9))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"quaternion {i} {q[i].tolist()} is not a rotation (norm {n[i]})")
+    x, y, z, w = (q / n[:, None]).T
+    T = np.zeros((len(q), 4, 4))
+    T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)
+    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = 2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)
+    T[:, 2, 0], T[:, 2, 1], T[:, 2, 2] = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
+    T[:, :3, 3] = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def from_xy_yaws(xy_yaw: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) planar transforms of (n, 3) ``(x, y, yaw)`` rows (m, m, rad): :func:`from_xy_yaw`
+    on many at once."""
+    v = np.asarray(xy_yaw, dtype=np.float64).reshape(-1, 3)
+    c, s = np.cos(v[:, 2]), np.sin(v[:, 2])
+    T = np.zeros((len(v), 4, 4))
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, 2, 2] = T[:, 3, 3] = 1.0
+    T[:, :2, 3] = v[:, :2]
+    return T
+
+
 def from_xyz_rpy(xyz_rpy) -> np.ndarray:
     """4x4 transform of ``[x, y, z, roll, pitch, yaw]`` (m, rad), ROS's convention (tf2, URDF):
     R = Rz(yaw) Ry(pitch) Rx(roll), i.e. roll about x, then pitch about y, then yaw about z (fixed axes).
@@ -104,6 +140,38 @@ def quat_xyzw(T: np.ndarray) -> np.ndarray:
         q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
     q = np.asarray(q) / np.linalg.norm(q)
     return -q if q[3] < 0 else q
+
+
+def quats_xyzw(T: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions (x, y, z, w), ``w >= 0``, of (n, 4, 4) transforms (or (n, 3, 3)
+    rotations): :func:`quat_xyzw` on many at once (the same branch per matrix, by its largest
+    diagonal term)."""
+    R = np.asarray(T, dtype=np.float64)[:, :3, :3]
+    r00, r11, r22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    tr = r00 + r11 + r22
+    q = np.empty((len(R), 4))
+    case_w = tr > 0
+    case_x = ~case_w & (r00 > r11) & (r00 > r22)
+    case_y = ~case_w & ~case_x & (r11 > r22)
+    case_z = ~(case_w | case_x | case_y)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = np.sqrt(tr + 1.0) * 2
+        q_w = np.stack([(R[:, 2, 1] - R[:, 1, 2]) / s, (R[:, 0, 2] - R[:, 2, 0]) / s,
+                        (R[:, 1, 0] - R[:, 0, 1]) / s, 0.25 * s], axis=1)
+        s = np.sqrt(1.0 + r00 - r11 - r22) * 2
+        q_x = np.stack([0.25 * s, (R[:, 0, 1] + R[:, 1, 0]) / s, (R[:, 0, 2] + R[:, 2, 0]) / s,
+                        (R[:, 2, 1] - R[:, 1, 2]) / s], axis=1)
+        s = np.sqrt(1.0 + r11 - r00 - r22) * 2
+        q_y = np.stack([(R[:, 0, 1] + R[:, 1, 0]) / s, 0.25 * s, (R[:, 1, 2] + R[:, 2, 1]) / s,
+                        (R[:, 0, 2] - R[:, 2, 0]) / s], axis=1)
+        s = np.sqrt(1.0 + r22 - r00 - r11) * 2
+        q_z = np.stack([(R[:, 0, 2] + R[:, 2, 0]) / s, (R[:, 1, 2] + R[:, 2, 1]) / s, 0.25 * s,
+                        (R[:, 1, 0] - R[:, 0, 1]) / s], axis=1)
+    for case, value in ((case_w, q_w), (case_x, q_x), (case_y, q_y), (case_z, q_z)):
+        q[case] = value[case]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 3] < 0] *= -1.0
+    return q
 
 
 def from_xy_yaw(x: float, y: float, yaw: float, z: float = 0.0) -> np.ndarray:

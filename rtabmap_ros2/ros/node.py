@@ -17,9 +17,10 @@ Sensor mounts and TF (:mod:`rtabmap_ros2.ros.frames`)
     stamped now + ``tf_delay`` (``publish_tf``); without it: ``base_to_laser`` / ``base_to_camera``.
 Publications (frame ``map_frame_id``)
     ``mapPath`` (nav_msgs/Path: the optimised local map), ``map`` (nav_msgs/OccupancyGrid,
-    transient local), ``mapGraph`` (visualization_msgs/MarkerArray), ``info``
+    transient local; at most once per :data:`GRID_PERIOD_S`), ``mapGraph`` (visualization_msgs/MarkerArray), ``info``
     (diagnostic_msgs/DiagnosticArray: one status ``rtabmap`` whose key/values are the frame's
-    ``Statistics.to_dict()`` plus the node's ``node_latency_ms``, ``node_frames_dropped``,
+    ``Statistics.to_dict()`` plus the node's ``node_time_ms/<part>`` (the worker's time on the
+    previous frame by part, :mod:`rtabmap_ros2.ros.frame_times`), ``node_latency_ms``, ``node_frames_dropped``,
     ``node_messages_lost``, ``node_paused``, ``node_frame_errors`` and the dropped bad inputs
     ``node_dropped:<topic>:<reason>``, ``node_dropped_messages``), ``localization_pose``
     (geometry_msgs/PoseStamped, localization mode only).
@@ -35,8 +36,8 @@ Parameters
 
 Threads: sensor callbacks (one mutually exclusive group) convert each message and feed the one
 :class:`~rtabmap_ros2.core.sync.FrameSynchronizer`; a completed set becomes a ``SensorFrame`` put
-in a queue of :data:`FRAME_QUEUE_SIZE` frames (when it is full the oldest is dropped and counted in
-``frames_dropped``). The synchroniser already keeps one set per detection period, so the queue only
+in a queue of :data:`FRAME_QUEUE_SIZE` frames (when it is full the oldest is dropped, counted in
+``frames_dropped`` and on ``info``, and the first drop is logged with the reason). The synchroniser already keeps one set per detection period, so the queue only
 absorbs sets that arrive together (a reliable transport repairing a lost sample releases the sets
 held behind it at once) instead of dropping all but the newest. One worker thread
 owns the core (SQLite connections belong to the thread that opened them): it creates the
@@ -102,6 +103,7 @@ from rtabmap_ros2.io.bag import register_to_rgb
 from rtabmap_ros2.ros import conversions as conv
 from rtabmap_ros2.ros.frames import CAMERA, LASER, MapOdomBroadcaster, SensorMounts, import_tf2
 from rtabmap_ros2.ros.dropped import DroppedInputs
+from rtabmap_ros2.ros.frame_times import FrameTimer, FrameTimes
 from rtabmap_ros2.ros.params import declare_parameters
 from rtabmap_ros2.ros.subscriptions import GRAPH_CHECK_PERIOD_S, Candidate, StreamSubscriptions
 
@@ -115,9 +117,17 @@ EXIT_UNRECOVERABLE = 3
 SILENCE_CHECK_PERIOD_S = 1.0
 # Synchronised frames waiting for the worker. A reliable Fast DDS writer resends a lost sample at its
 # next heartbeat (every 3 s by default), and the sets held behind it then complete together: stalls
-# of 5-6 s were measured (bench_node.py, 2 loaded cores). 10 frames, the default sync_queue_size,
-# hold every set the synchroniser can still complete after such a stall; beyond, the oldest goes.
-FRAME_QUEUE_SIZE = 10
+# of 5-6 s were measured (bench_node.py, 2 loaded cores). The worker also falls behind for a few
+# frames when a loop closure makes it cast the local grid again: two sessions replayed at 4x
+# (bench_node.py, load 5-8 on 2 cores) overflowed 10 frames by 1-4; 30 (about 60 MB of raw
+# 640x480 RGB-D) lets it catch up in order. Beyond, the oldest goes (logged once, counted on info).
+FRAME_QUEUE_SIZE = 30
+# The local occupancy grid is built and published at most once per this period of wall time:
+# just under the default 1 Hz detection period, so a 1 Hz robot gets one every frame despite
+# arrival jitter (at 1.0 s, half the frames of a 1x replay had none), while a bag replayed at 4x
+# gets one every 3-4 frames (the new scans cast together) and the worker keeps up. The grid was
+# the dominant part of the worker's time on info (issue 33).
+GRID_PERIOD_S = 0.9
 # Worker wake-up period when idle, so shutdown is noticed (s).
 WORKER_POLL_S = 0.1
 # Latencies kept for `latencies_s` (benchmarks).
@@ -246,6 +256,9 @@ class RtabmapNode(Node):
         self.bad_messages = self.dropped.counts   # (topic, reason) -> dropped inputs
         self.messages_lost: dict[str, int] = {}   # topic -> messages lost in transport (DDS gaps)
         self.latencies_s: deque[float] = deque(maxlen=LATENCY_HISTORY)
+        self.frame_times = FrameTimes(LATENCY_HISTORY)   # the worker's time per frame, by part
+        self.frame_queue_size = FRAME_QUEUE_SIZE
+        self._last_grid_time = -float("inf")   # when the worker last built the local grid (monotonic s)
         self.frame_errors: dict[str, int] = {}   # unexpected errors while processing, per kind
         self.fatal_error: Optional[BaseException] = None
         self.last_statistics = None
@@ -429,11 +442,18 @@ class RtabmapNode(Node):
         if self.paused:
             return
         with self._worker_lock:
-            if len(self._frames) >= FRAME_QUEUE_SIZE:
+            dropped = len(self._frames) >= self.frame_queue_size
+            if dropped:
                 self._frames.popleft()
                 self.frames_dropped += 1
             self._frames.append((frame, arrival))
         self._wake.set()
+        if dropped and self.frames_dropped == 1:
+            self.get_logger().warning(
+                f"frames are being skipped: the worker is slower than the input and its queue of "
+                f"{self.frame_queue_size} frames is full, so the oldest is dropped (counted on info as "
+                "node_frames_dropped, not logged again; where the worker's time goes: info's "
+                "node_time_ms/<part>). Lower sync.rate_hz (detection_rate) or play the bag slower.")
 
     def _bad(self, topic: str, reason: str, message: str) -> None:
         """Drop a bad input: logged once per (topic, reason), counted on info."""
@@ -545,10 +565,18 @@ class RtabmapNode(Node):
         self.context.try_shutdown()
 
     def _process_frame(self, frame: SensorFrame, arrival: float) -> None:
+        timer = FrameTimer()
         try:
-            stats = self._core.process(frame)
-            local = self._core.local_map()
-            grid = self._core.local_grid() if frame.scan is not None else None
+            with timer.part("process"):
+                stats = self._core.process(frame)
+            with timer.part("local_map"):
+                local = self._core.local_map()
+            with timer.part("local_grid"):
+                now = time.monotonic()
+                grid = None
+                if frame.scan is not None and now - self._last_grid_time >= GRID_PERIOD_S:
+                    grid = self._core.local_grid()
+                    self._last_grid_time = now
             localization_pose = getattr(self._core, "localization_pose", None)
             localization = self._core.localization_mode
         except SensorDataError as exc:
@@ -563,21 +591,28 @@ class RtabmapNode(Node):
         self.last_statistics = stats
         stamp = frame.stamp_ns
         map_frame = self.params.node.map_frame_id
-        self._pub_path.publish(conv.path_to_msg(local.poses, stamp, map_frame))
+        with timer.part("path"):
+            self._pub_path.publish(conv.path_to_msg(local.poses, stamp, map_frame))
         latency = time.monotonic() - arrival
         self.latencies_s.append(latency)
-        if grid is not None:
-            self._pub_map.publish(conv.grid_to_msg(grid, stamp, map_frame))
-        self._pub_graph.publish(conv.graph_to_markers(local.poses, local.links, stamp, map_frame))
-        extra = {"node_latency_ms": round(latency * 1e3, 3), "node_frames_dropped": self.frames_dropped,
-                 "node_messages_lost": sum(self.messages_lost.values()), "node_paused": self.paused,
-                 "node_frame_errors": sum(self.frame_errors.values()), **self.dropped.info()}
-        self._pub_info.publish(conv.statistics_to_msg({**stats.to_dict(), **extra}, stamp, map_frame))
-        if self.tf_broadcaster is not None:
-            self.tf_broadcaster.update(local.T_map_odom)
-        if localization and localization_pose is not None:
-            self._pub_localization.publish(
-                PoseStamped(header=conv.header(stamp, map_frame), pose=conv.pose_to_msg(localization_pose)))
+        with timer.part("map"):
+            if grid is not None:
+                self._pub_map.publish(conv.grid_to_msg(grid, stamp, map_frame))
+        with timer.part("markers"):
+            self._pub_graph.publish(conv.graph_to_markers(local.poses, local.links, stamp, map_frame))
+        with timer.part("tf"):
+            if self.tf_broadcaster is not None:
+                self.tf_broadcaster.update(local.T_map_odom)
+            if localization and localization_pose is not None:
+                self._pub_localization.publish(
+                    PoseStamped(header=conv.header(stamp, map_frame), pose=conv.pose_to_msg(localization_pose)))
+        with timer.part("info"):
+            extra = {"node_latency_ms": round(latency * 1e3, 3), "node_frames_dropped": self.frames_dropped,
+                     "node_messages_lost": sum(self.messages_lost.values()), "node_paused": self.paused,
+                     "node_frame_errors": sum(self.frame_errors.values()), **self.dropped.info(),
+                     **self.frame_times.info()}
+            self._pub_info.publish(conv.statistics_to_msg({**stats.to_dict(), **extra}, stamp, map_frame))
+        self.frame_times.add(timer)
 
     # -- publishers and services ---------------------------------------------------------------
     def _advertise(self) -> None:

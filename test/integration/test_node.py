@@ -43,6 +43,8 @@ pytestmark = pytest.mark.ros
 
 DOMAIN_ID = random.randint(1, 99)
 N_FRAMES = 14
+# Frame queue size in the burst test (the node's own, FRAME_QUEUE_SIZE, is larger).
+QUEUE_UNDER_TEST = 10
 TIMEOUT_S = 30.0
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -208,6 +210,13 @@ def test_mapping_publishes_path_map_graph_info(harness, frames):
     infos = [harness.feed(f) for f in frames]
     assert [int(i["location_id"]) > 0 for i in infos] == [True] * len(frames)
     assert all(float(i["node_latency_ms"]) >= 0 for i in infos)
+    # The worker's time on the previous frame, by part (none yet on the first frame's info).
+    parts = ("process", "local_map", "local_grid", "path", "map", "markers", "tf", "info")
+    assert not any(k.startswith("node_time_ms/") for k in infos[0])
+    for info in infos[1:]:
+        times = {part: float(info[f"node_time_ms/{part}"]) for part in parts}
+        assert all(ms >= 0 for ms in times.values()) and times["process"] > 0
+        assert float(info["node_time_ms/total"]) == pytest.approx(sum(times.values()), abs=0.01)
     t = harness.tester
     assert wait_for(lambda: t.count("mapPath") >= len(frames) and t.count("mapGraph") >= len(frames))
     path = t.last("mapPath")
@@ -247,8 +256,10 @@ def test_frames_completed_together_are_all_processed(harness, frames):
     """Sets that complete at once (a reliable transport repairing a lost sample releases the ones held
     behind it) wait in the frame queue instead of replacing each other; past its size the oldest go."""
     node, t = harness.node, harness.tester
-    burst = frames[:FRAME_QUEUE_SIZE + 2]
-    assert len(burst) == FRAME_QUEUE_SIZE + 2, "N_FRAMES too small for this test"
+    assert QUEUE_UNDER_TEST < FRAME_QUEUE_SIZE
+    node.frame_queue_size = QUEUE_UNDER_TEST   # fewer frames to make than the node's own size
+    burst = frames[:QUEUE_UNDER_TEST + 2]
+    assert len(burst) == QUEUE_UNDER_TEST + 2, "N_FRAMES too small for this test"
     release = _hold_worker(node)
     try:
         for i, f in enumerate(burst, 1):
@@ -257,8 +268,8 @@ def test_frames_completed_together_are_all_processed(harness, frames):
             assert wait_for(lambda: node._sync.emitted == i), node._sync.dropped
     finally:
         release.set()   # a held worker would block the harness's shutdown
-    assert wait_for(lambda: t.count("info") == FRAME_QUEUE_SIZE)
-    assert node.frames_processed == FRAME_QUEUE_SIZE and node.frames_dropped == 2
+    assert wait_for(lambda: t.count("info") == QUEUE_UNDER_TEST)
+    assert node.frames_processed == QUEUE_UNDER_TEST and node.frames_dropped == 2
     # The newest frames are kept, in order.
     stamps = [m.header.stamp for m in t.received["info"]]
     assert stamps == [conv.header(f.stamp_ns, "map").stamp for f in burst[2:]]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Link, LinkType, agree, agree_many, connected_components
+from rtabmap_ros2.core.graph import Link, LinkType, agree, agree_many, component_labels, connected_components
 
 
 def _link(a: int, b: int) -> Link:
@@ -25,3 +25,41 @@ def test_agree_many_is_agree_of_each():
                             transforms.from_xy_yaw(0.0, 0.0, np.deg2rad(12.0))])  # too rotated
     assert agree_many(differences).tolist() == [True, False, False]
     assert [agree(d) for d in differences] == [True, False, False]
+
+
+def _components_by_search(count: int, ends: np.ndarray) -> list[set[int]]:
+    """Reference: breadth-first search over an adjacency list."""
+    adjacency: dict[int, set[int]] = {i: set() for i in range(count)}
+    for a, b in ends.tolist():
+        adjacency[a].add(b)
+        adjacency[b].add(a)
+    seen, out = set(), []
+    for start in range(count):
+        if start in seen:
+            continue
+        component, frontier = {start}, [start]
+        while frontier:
+            frontier = [m for n in frontier for m in adjacency[n] if m not in component]
+            component.update(frontier)
+        seen |= component
+        out.append(component)
+    return out
+
+
+def test_component_labels_match_a_graph_search(rng):
+    """Random graphs, and chains visited in random order (the slowest case for label propagation):
+    same partition as a breadth-first search, each label the smallest index of its component."""
+    for trial in range(200):
+        count = int(rng.integers(1, 120))
+        if trial % 2:
+            order = rng.permutation(count)
+            ends = np.column_stack([order[:-1], order[1:]])[: int(rng.integers(0, count))]
+        else:
+            ends = rng.integers(0, count, (int(rng.integers(0, 2 * count)), 2))
+        labels = component_labels(count, ends.reshape(-1, 2))
+        expected = _components_by_search(count, ends.reshape(-1, 2))
+        got: dict[int, set[int]] = {}
+        for node, label in enumerate(labels.tolist()):
+            got.setdefault(label, set()).add(node)
+        assert sorted(map(sorted, got.values())) == sorted(map(sorted, expected))
+        assert all(label == min(got[label]) for label in got)

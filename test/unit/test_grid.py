@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.grid import (FREE, OCCUPIED, UNKNOWN, assemble_cloud, build_grid, scan_conflict,
-                                    voxel_filter, write_ply)
+from rtabmap_ros2.core.grid import (FREE, OCCUPIED, UNKNOWN, GridAccumulator, assemble_cloud, build_grid,
+                                    scan_conflict, voxel_filter, write_ply)
 from rtabmap_ros2.core.params import GridParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 
@@ -58,6 +58,40 @@ def test_two_poses_combine():
     near = lambda g, p: (np.stack([g.value_at(p + [d, 0]) for d in (-RES, 0, RES)]) == OCCUPIED).any()
     assert near(one, right) and not near(one, left)
     assert near(two, right) and near(two, left)
+
+
+def test_a_scan_taken_back_leaves_the_grid_of_the_others():
+    """weight -1 undoes an add at the same pose exactly: the local grid moves a node by taking its
+    scan back at the old pose and casting it at the new one, which must equal casting the scans
+    at their current poses from scratch."""
+    params = GridParams(resolution=RES, range_max=5.0)
+    scans = {1: room_scan(0.0, 0.0), 2: room_scan(0.5, -0.3), 3: room_scan(-0.8, 0.6)}
+    old = {1: transforms.identity(), 2: transforms.from_xy_yaw(0.5, -0.3, 0.0), 3: transforms.from_xy_yaw(-0.8, 0.6, 0.0)}
+    new = dict(old)
+    new[2] = transforms.from_xy_yaw(0.55, -0.25, 0.1)   # moved (as after a loop closure)
+    accumulator = GridAccumulator(params)
+    for n in old:
+        accumulator.add(old[n], scans[n])
+    # A node far away first: the canvas grows (its corner moves) between a scan's add and take-back.
+    scans[4] = room_scan(0.0, 0.0)
+    old[4] = new[4] = transforms.from_xy_yaw(-6.0, -5.0, 0.0)
+    accumulator.add(old[4], scans[4])
+    accumulator.add(old[2], scans[2], weight=-1)
+    accumulator.add(new[2], scans[2])
+    accumulator.add(old[3], scans[3], weight=-1)          # node 3 left the local map
+    del new[3]
+    incremental = accumulator.grid()
+    from_scratch = GridAccumulator(params)   # the same first scan: the same cell boundaries
+    for n in (1, 2, 4):
+        from_scratch.add(new[n], scans[n])
+    scratch = from_scratch.grid()
+    # Same cell values everywhere (the empty margin around the observed cells may be cropped by
+    # the canvas edge, so the arrays are compared at map points, every cell centre).
+    g = np.arange(-10.0, 5.0, RES) + RES / 2
+    points = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    assert np.array_equal(incremental.value_at(points), scratch.value_at(points))
+    stale = build_grid(old, scans, params)
+    assert not np.array_equal(incremental.value_at(points), stale.value_at(points))
 
 
 def test_no_return_beams_clear_to_range_max():
