@@ -37,7 +37,7 @@ from rtabmap_ros2.ros import conversions as conv  # noqa: E402
 from rtabmap_ros2.ros.node import (  # noqa: E402
     FRAME_QUEUE_SIZE, RtabmapNode, checked_export_path, new_export_folder)
 
-from ros_spin import spinning  # noqa: E402
+from ros_spin import SPIN_WAIT_S, spinning  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -302,6 +302,10 @@ def test_map_is_latched_for_late_subscribers(harness, frames, context):
         assert wait_for(lambda: len(got) == 1)
     finally:
         harness.executor.remove_node(late)
+        # The spin thread may be building a wait set with the node's subscription right now:
+        # destroyed under it, rclpy raises InvalidHandle in that thread. A few spin rounds later
+        # its wait sets no longer hold the node.
+        time.sleep(4 * SPIN_WAIT_S)
         late.destroy_node()
 
 
