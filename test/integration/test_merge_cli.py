@@ -18,12 +18,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from rtabmap_ros2.core.params import Params, default_config_path
 from rtabmap_ros2.core.rtabmap import Rtabmap
-from rtabmap_ros2.io.trajectory import align_rigid, read_tum
+from rtabmap_ros2.io.trajectory import read_tum
 
 CLI = [sys.executable, "-m", "rtabmap_ros2"]
 TIMEOUT_S = 900
@@ -52,22 +51,13 @@ def error_line(result: subprocess.CompletedProcess) -> str:
 
 
 def merged_ate(export_dir: Path, truths: list[Path]) -> tuple[float, int]:
-    """ATE (m) of an export whose session k is the robot of ``truths[k]`` (a TUM file): nodes matched
-    by (session, stamp), since the robots' stamps coincide; one rigid alignment for all."""
-    truth = [read_tum(path) for path in truths]
-    estimated, expected = [], []
-    with open(export_dir / "nodes.csv", newline="") as f:
-        for row in csv.DictReader(f):
-            gt = truth[int(row["map_id"])]
-            stamp_ns = round(float(row["stamp"]) * 1e9)
-            k = int(np.argmin(np.abs(gt.stamps_ns - stamp_ns)))
-            assert abs(int(gt.stamps_ns[k]) - stamp_ns) < 1000, row
-            estimated.append([float(row[c]) for c in "xyz"])
-            expected.append(gt.positions[k])
-    estimated, expected = np.array(estimated), np.array(expected)
-    T = align_rigid(estimated, expected)
-    errors = np.linalg.norm(estimated @ T[:3, :3].T + T[:3, 3] - expected, axis=1)
-    return float(np.sqrt(np.mean(errors ** 2))), len(errors)
+    """ATE (m) of an export whose session k is the robot of ``truths[k]`` (a TUM file): the robots'
+    stamps coincide, so each session is matched with its own ground truth; one alignment for all."""
+    from rtabmap_ros2.io.export import read_nodes_csv
+    from rtabmap_ros2.io.trajectory import ate_sessions
+
+    result = ate_sessions(read_nodes_csv(export_dir / "nodes.csv"), dict(enumerate(map(read_tum, truths))))
+    return result.rmse_m, result.matched
 
 
 def node_count(db: Path) -> int:
