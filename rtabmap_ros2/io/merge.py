@@ -30,7 +30,7 @@ import logging
 import os
 import threading
 from collections import Counter, defaultdict
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from itertools import combinations
 from pathlib import Path
 from typing import Iterator, Optional
@@ -374,7 +374,6 @@ class MergeReport:
     chi2_initial: float
     chi2_final: float
     optimization_time_s: float
-    extra: dict = field(default_factory=dict)
 
     @property
     def every_node_present(self) -> bool:

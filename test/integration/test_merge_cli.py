@@ -24,6 +24,8 @@ from rtabmap_ros2.core.params import Params, default_config_path
 from rtabmap_ros2.core.rtabmap import Rtabmap
 from rtabmap_ros2.io.trajectory import read_tum
 
+from cli_result import error_line
+
 CLI = [sys.executable, "-m", "rtabmap_ros2"]
 TIMEOUT_S = 900
 SEED = 3
@@ -40,14 +42,6 @@ def run(*args) -> subprocess.CompletedProcess:
 
 def digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def error_line(result: subprocess.CompletedProcess) -> str:
-    assert result.returncode == 2, result.stdout + result.stderr
-    assert "Traceback" not in result.stderr, result.stderr
-    lines = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
-    assert len(lines) == 1, result.stderr
-    return lines[0]
 
 
 def merged_ate(export_dir: Path, truths: list[Path]) -> tuple[float, int]:

@@ -13,64 +13,30 @@ from __future__ import annotations
 
 import json
 import random
-import threading
-import time
-from pathlib import Path
 
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-
 from rtabmap_ros2.core.database import Database  # noqa: E402
-from rtabmap_ros2.ros.node import RtabmapNode  # noqa: E402
-from rtabmap_ros2.ros.play import play_bag  # noqa: E402
 
-from ros_spin import spinning  # noqa: E402
+from node_play import play_into_node  # noqa: E402
 from test_merge_cli import MAX_ATE_M, SEED, digest, merged_ate, node_count, run  # noqa: E402
+from test_node_mounts import CAMERA_MOUNT, LASER_MOUNT  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 DOMAIN_ID = random.randint(1, 99)
-LASER_MOUNT = [0.25, 0.1, 0.3, 0.0, 0.0, 0.3]
-CAMERA_MOUNT = [0.15, -0.05, 0.5, -1.5708, 0.0, -1.3]
-# Real time, as a robot's drivers publish (test_node_mounts.py: faster replay loses sets).
-PLAY_RATE = 1.0
 # Seconds of a bag played into the node started from the merged database, per mode.
 LOCALIZE_S = 12.0
 CONTINUE_S = 20.0
 
 
-def play_into_node(context, bag: Path, database: Path, seconds: float | None = None, **params) -> RtabmapNode:
-    """Play ``bag`` (its first ``seconds``, or all of it) into a node on ``database``; wait until every
-    synchronised frame is processed; return the node (destroyed: the database is closed)."""
+def play(context, bag, database, seconds=None, **params):
+    """``bag`` played into a node on ``database`` with the mounts as parameters (no tf2 here)."""
     overrides = {"database_path": str(database), "base_to_laser": LASER_MOUNT, "base_to_camera": CAMERA_MOUNT,
                  **params}
-    node = RtabmapNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
-    player = Node("player", context=context)
-    executor = MultiThreadedExecutor(num_threads=3, context=context)
-    executor.add_node(node)
-    executor.add_node(player)
-    stop = threading.Event()
-    timer = threading.Timer(seconds, stop.set) if seconds else None
-    try:
-        with spinning(executor):
-            if timer:
-                timer.start()
-            stats = play_bag(bag, player, rate=PLAY_RATE, delay_s=1.5, stop=stop)
-            assert timer or not stats.unacknowledged, stats
-            deadline = time.monotonic() + 30
-            while time.monotonic() < deadline and node.frames_processed + node.frames_dropped < node._sync.emitted:
-                time.sleep(0.1)
-    finally:
-        if timer:
-            timer.cancel()
-        player.destroy_node()
-        node.destroy_node()
-    return node
+    return play_into_node(context, bag, overrides, seconds)[0]
 
 
 def test_node_and_map_databases_of_robots_at_the_same_time_merge_and_the_node_goes_on(context, tmp_path):
@@ -78,7 +44,7 @@ def test_node_and_map_databases_of_robots_at_the_same_time_merge_and_the_node_go
     mounts = ["--laser-mount", ",".join(map(str, LASER_MOUNT)), "--camera-mount", ",".join(map(str, CAMERA_MOUNT))]
     result = run("simulate", "--out", sim, "--small", "--seed", SEED, "--raw-images", "--session-gap", 0, *mounts)
     assert result.returncode == 0, result.stderr
-    node = play_into_node(context, sim / "session_1", tmp_path / "robot_1.db")
+    node = play(context, sim / "session_1", tmp_path / "robot_1.db")
     assert node.frames_processed > 0
     result = run("map", sim / "session_2", "--db", tmp_path / "robot_2.db", "--no-progress")
     assert result.returncode == 0, result.stderr
@@ -110,7 +76,7 @@ def test_node_and_map_databases_of_robots_at_the_same_time_merge_and_the_node_go
     # Localization in the merged map: no node added, poses found.
     with Database(merged, read_only=True) as db:
         frames_before = db.max_frame_index()
-    node = play_into_node(context, sim / "session_2", merged, LOCALIZE_S, localization=True)
+    node = play(context, sim / "session_2", merged, LOCALIZE_S, localization=True)
     assert node.frames_processed > 0
     with Database(merged, read_only=True) as db:
         assert db.node_count() == nodes
@@ -118,7 +84,7 @@ def test_node_and_map_databases_of_robots_at_the_same_time_merge_and_the_node_go
     assert len(rows) == node.frames_processed and sum(row["localized"] for row in rows) > 0, rows
 
     # Mapping goes on in the merged map: a new session, joined to it.
-    node = play_into_node(context, sim / "session_1", merged, CONTINUE_S)
+    node = play(context, sim / "session_1", merged, CONTINUE_S)
     with Database(merged, read_only=True) as db:
         infos = db.load_nodes()
         assert {n.map_id for n in infos.values()} == {0, 1, 2}
