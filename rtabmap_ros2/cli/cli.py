@@ -20,6 +20,7 @@ SUBCOMMANDS = [
     "demo",
     "detect",
     "map",
+    "merge",
     "export",
     "report",
     "simulate",

@@ -44,6 +44,19 @@ def stats_row(stats) -> dict:
             "transferred": stats.transferred}
 
 
+@contextlib.contextmanager
+def statistics_csv(path) -> Iterator[Optional[Callable]]:
+    """``--stats FILE.csv``: yields a function writing one :data:`STATS_COLUMNS` row per frame's
+    Statistics into ``path`` (None when ``path`` is None)."""
+    if path is None:
+        yield None
+        return
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=STATS_COLUMNS)
+        writer.writeheader()
+        yield lambda stats: writer.writerow(stats_row(stats))
+
+
 @dataclass
 class SessionSummary:
     """What one session (map) added, as printed per session."""
@@ -218,12 +231,7 @@ def run(args: argparse.Namespace) -> int:
     datasets = [(Path(b).name, BagDataset(b, sync=params.sync, **mounts)) for b in args.bags]
     t0 = time.perf_counter()
     with Rtabmap(params, db_path, delete_existing=args.overwrite) as rtabmap, \
-            (open(stats_path, "w", newline="") if stats_path else contextlib.nullcontext()) as stats_file:
-        on_statistics = None
-        if stats_file is not None:
-            writer = csv.DictWriter(stats_file, fieldnames=STATS_COLUMNS)
-            writer.writeheader()
-            on_statistics = lambda stats: writer.writerow(stats_row(stats))  # noqa: E731
+            statistics_csv(stats_path) as on_statistics:
         sessions = map_datasets(rtabmap, datasets, progress=not args.no_progress, on_statistics=on_statistics)
         rtabmap.flush()
     elapsed = time.perf_counter() - t0

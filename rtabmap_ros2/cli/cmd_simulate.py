@@ -30,6 +30,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--camera-mount", type=_mount, default=None, metavar="X,Y,Z,ROLL,PITCH,YAW",
                         help="camera optical frame on the base (m, rad; level: roll -1.5708, pitch 0), "
                              "default 0.1,0,0.5,-1.5708,0,-1.5708")
+    parser.add_argument("--session-gap", type=float, default=None, metavar="SECONDS",
+                        help="time between session starts (default 3600; 0: all sessions at once, as robots "
+                             "mapping at the same time, e.g. for merge)")
     parser.add_argument("--no-tf-static", action="store_true",
                         help="do not write /tf_static (the mounts must then be given to map / the node)")
     parser.set_defaults(func=run)
@@ -51,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
     sessions = args.sessions if args.sessions is not None else (2 if args.small else 5)
     summary = simulate(args.out, sessions=sessions, seed=args.seed, small=args.small, jobs=args.jobs,
                        raw_images=args.raw_images, laser_mount=args.laser_mount, camera_mount=args.camera_mount,
-                       tf_static=not args.no_tf_static)
+                       tf_static=not args.no_tf_static,
+                       **({} if args.session_gap is None else {"session_gap_s": args.session_gap}))
     for s in summary.sessions:
         print(f"session {s['session']}: {s['frames']} frames, {s['length_m']:.1f} m, "
               f"{s['revisit_frames']} frames revisit sessions {s['revisited_sessions']}")

@@ -900,6 +900,20 @@ class Database:
         """Per-frame statistics rows, by increasing frame index."""
         return [json.loads(r[0]) for r in self._query("SELECT data FROM statistics ORDER BY frame_index")]
 
+    def descriptor_kinds(self) -> list[tuple[str, int]]:
+        """The distinct (dtype name, size) of the stored words' descriptors ([] without words)."""
+        return [(dtype, int(dim)) for dtype, dim in self._query("SELECT DISTINCT dtype, dim FROM words ORDER BY dtype")]
+
+    def nodes_without_rgb(self) -> int:
+        """Number of nodes with no stored RGB image."""
+        return int(self._query("SELECT count(*) FROM nodes n LEFT JOIN sensor_data s ON s.node_id = n.id "
+                               "WHERE s.rgb_jpeg IS NULL")[0][0])
+
+    def quick_check(self) -> list[str]:
+        """SQLite's ``PRAGMA quick_check`` messages (``["ok"]`` for a sound file): integrity_check
+        without the index contents, linear in the file size."""
+        return [r[0] for r in self._query("PRAGMA quick_check")]
+
     def integrity_check(self) -> list[str]:
         """SQLite's ``PRAGMA integrity_check`` messages (``["ok"]`` for a sound file)."""
         return [r[0] for r in self._query("PRAGMA integrity_check")]

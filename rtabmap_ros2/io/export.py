@@ -37,8 +37,8 @@ from rtabmap_ros2.core.graph import LinkType
 from rtabmap_ros2.core.grid import OccupancyGrid, write_ply
 from rtabmap_ros2.core.optimizer import write_g2o
 from rtabmap_ros2.core.params import Params
-from rtabmap_ros2.errors import DatabaseError
-from rtabmap_ros2.io.trajectory import NS_PER_S, write_tum
+from rtabmap_ros2.errors import DatabaseError, DatasetError
+from rtabmap_ros2.io.trajectory import NS_PER_S, Trajectory, seconds_to_ns, write_tum
 
 log = logging.getLogger(__name__)
 
@@ -163,6 +163,21 @@ def write_nodes_csv(path: Path, gmap: GlobalMap, order: list[int]) -> None:
                         *(f"{v:.9f}" for v in q), gmap.weights[n]])
 
 
+def read_nodes_csv(path: str | os.PathLike) -> dict[int, Trajectory]:
+    """An export's ``nodes.csv`` as one trajectory per session (map id), nodes in file order."""
+    rows: dict[int, tuple[list[int], list[np.ndarray]]] = {}
+    try:
+        with open(path, newline="") as f:
+            for row in csv.DictReader(f):
+                stamps, poses = rows.setdefault(int(row["map_id"]), ([], []))
+                stamps.append(seconds_to_ns(row["stamp"]))
+                poses.append(transforms.from_xyz_quat_xyzw([float(row[c]) for c in ("x", "y", "z")],
+                                                           [float(row[c]) for c in ("qx", "qy", "qz", "qw")]))
+    except (OSError, KeyError, ValueError) as exc:
+        raise DatasetError(f"cannot read the export's nodes {path}: {exc}") from exc
+    return {m: Trajectory(np.asarray(stamps, dtype=np.int64), np.stack(poses)) for m, (stamps, poses) in rows.items()}
+
+
 def write_links_csv(path: Path, gmap: GlobalMap) -> None:
     """``links.csv``: one row per kept link, ``T_from_to`` as translation + quaternion."""
     with files.new_file(path, "w", newline="") as f:
@@ -256,5 +271,5 @@ def _summary(gmap: GlobalMap, grid: OccupancyGrid, cloud_points: int, database_p
     }
 
 
-__all__ = ["FILES", "LINKS_COLUMNS", "NODES_COLUMNS", "export_global_map", "write_links_csv", "write_map_pgm",
+__all__ = ["FILES", "LINKS_COLUMNS", "NODES_COLUMNS", "export_global_map", "read_nodes_csv", "write_links_csv", "write_map_pgm",
            "write_map_png", "write_map_yaml", "write_nodes_csv"]

@@ -81,7 +81,7 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
             raise DatasetError(f"{path}:{number}: expected 8 values 'stamp x y z qx qy qz qw', got {len(fields)}")
         try:
             values = [float(v) for v in fields[1:]]
-            stamps.append(_seconds_to_ns(fields[0]))
+            stamps.append(seconds_to_ns(fields[0]))
         except ValueError as exc:
             raise DatasetError(f"{path}:{number}: not a number in {line.strip()!r}") from exc
         poses.append(transforms.from_xyz_quat_xyzw(values[:3], values[3:]))
@@ -90,7 +90,7 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
     return Trajectory(np.asarray(stamps, dtype=np.int64), np.stack(poses))
 
 
-def _seconds_to_ns(text: str) -> int:
+def seconds_to_ns(text: str) -> int:
     """Exact ns from a decimal seconds string (no float rounding for 9-decimal stamps)."""
     whole, _, frac = text.strip().partition(".")
     if not frac:
@@ -200,4 +200,45 @@ def ate(estimate: Trajectory, ground_truth: Trajectory,
                      float(errors.max()), int(len(ie)), T, errors, ie, ig)
 
 
-__all__ = ["AteResult", "Trajectory", "align_rigid", "associate", "ate", "read_tum", "tum_line", "write_tum"]
+def ate_sessions(estimates: dict[int, Trajectory], ground_truths: dict[int, Trajectory],
+                 max_difference_s: float = DEFAULT_MAX_DIFFERENCE_S) -> AteResult:
+    """ATE of a multi-session estimate whose sessions may share stamps (robots mapping at the same
+    time): each session matched by stamp with its own ground truth, ONE rigid alignment for all.
+
+    Args:
+        estimates, ground_truths: session id -> trajectory; every estimated session needs its truth.
+
+    Returns:
+        :class:`AteResult`; ``index_est`` / ``index_gt`` index the sessions' trajectories
+        concatenated in increasing session id.
+
+    Raises:
+        DatasetError: a session without ground truth, or fewer than 3 poses matched in all.
+    """
+    missing = sorted(set(estimates) - set(ground_truths))
+    if missing:
+        raise DatasetError(f"sessions {missing} of the estimate have no ground truth")
+    est, gt, index_est, index_gt = [], [], [], []
+    offset_est = offset_gt = 0
+    for session in sorted(estimates):
+        e, g = estimates[session], ground_truths[session]
+        ie, ig = associate(e.stamps_ns, g.stamps_ns, max_difference_s)
+        est.append(e.positions[ie])
+        gt.append(g.positions[ig])
+        index_est.append(ie + offset_est)
+        index_gt.append(ig + offset_gt)
+        offset_est += len(e)
+        offset_gt += len(g)
+    est_xyz, gt_xyz = np.concatenate(est), np.concatenate(gt)
+    if len(est_xyz) < 3:
+        raise DatasetError(f"only {len(est_xyz)} poses of the estimate match a ground-truth stamp of their session "
+                           f"within {max_difference_s} s")
+    T = align_rigid(est_xyz, gt_xyz)
+    errors = np.linalg.norm(est_xyz @ T[:3, :3].T + T[:3, 3] - gt_xyz, axis=1)
+    return AteResult(float(np.sqrt(np.mean(errors ** 2))), float(errors.mean()), float(np.median(errors)),
+                     float(errors.max()), int(len(errors)), T, errors, np.concatenate(index_est),
+                     np.concatenate(index_gt))
+
+
+__all__ = ["AteResult", "Trajectory", "align_rigid", "associate", "ate", "ate_sessions", "read_tum", "seconds_to_ns", "tum_line",
+           "write_tum"]

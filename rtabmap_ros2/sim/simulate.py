@@ -7,7 +7,10 @@ to identity; each revisits parts of earlier sessions. Outputs of :func:`simulate
   default :class:`~rtabmap_ros2.io.bag.TopicNames`; JPEG colour + PNG depth unless ``raw_images``);
 * ``ground_truth.txt``: TUM ``stamp_s x y z qx qy qz qw`` of ``T_world_base``, one world frame for
   all sessions, stamps equal to the bag stamps; session k starts :data:`SESSION_GAP_S` after
-  session k-1 started (no overlap);
+  session k-1 started (no overlap), or ``session_gap_s`` (0: robots mapping at the same time, whose
+  stamps coincide);
+* ``ground_truth_1.txt`` ... ``ground_truth_K.txt``: the same, one file per session (unambiguous
+  when sessions overlap in time);
 * ``loops.csv``: for each frame, the nearest earlier frame (earlier session, or >= 20 s earlier
   in the same one) within 1 m and 30 deg: where a correct loop closure can be found;
 * ``world.png`` (floor plan, walls by texture kind, ground-truth paths) and ``world.json``.
@@ -108,14 +111,20 @@ class SimulationSummary:
         return d
 
 
-def make_sessions(world: World, sessions: Optional[int] = None, small: bool = False) -> list[SessionTruth]:
+def make_sessions(world: World, sessions: Optional[int] = None, small: bool = False,
+                  session_gap_s: float = SESSION_GAP_S,
+                  plans: Optional[tuple[tuple[str, ...], ...]] = None) -> list[SessionTruth]:
     """Ground truth and odometry of the sessions (all 5 by default, the 2 short ones with ``small``).
+
+    Session k starts ``session_gap_s`` after session k-1 started (0: all at once, as a fleet).
+    ``plans`` replaces the sessions' routes (waypoint names of :mod:`rtabmap_ros2.sim.world`),
+    e.g. a robot kept to a part of the building the others never see.
 
     More sessions than plans (long runs: ``--sessions 30`` is about 10,000 frames) drive the plans
     again in turn, each time with its own speeds, stops and odometry noise (session k's random
     draws), in the same building: session 6 revisits session 1's route.
     """
-    plans = SMALL_SESSION_PLANS if small else SESSION_PLANS
+    plans = plans or (SMALL_SESSION_PLANS if small else SESSION_PLANS)
     sessions = len(plans) if sessions is None else sessions
     if sessions < 1:
         raise RtabmapError(f"sessions={sessions} is out of range: at least 1 session")
@@ -124,7 +133,7 @@ def make_sessions(world: World, sessions: Optional[int] = None, small: bool = Fa
         rng = np.random.default_rng([world.seed, k, int(small)])
         plan = plans[(k - 1) % len(plans)]
         traj = plan_trajectory(world, plan, rng)
-        start_ns = (START_STAMP_S + (k - 1) * SESSION_GAP_S) * NS_PER_S
+        start_ns = START_STAMP_S * NS_PER_S + int(round((k - 1) * session_gap_s * NS_PER_S))
         stamps = start_ns + np.round(traj.times_s * NS_PER_S).astype(np.int64)
         out.append(SessionTruth(index=k, plan=plan, stamps_ns=stamps, T_world_base=traj.poses,
                                 T_odom_base=wheel_odometry(traj.xy_yaw, rng),
@@ -272,7 +281,7 @@ def _write_session_bag(out_dir: Path, seed: int, session: SessionTruth, raw_imag
 
 def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool = False, jobs: Optional[int] = None,
              raw_images: bool = False, laser_mount=None, camera_mount=None,
-             tf_static: bool = True) -> SimulationSummary:
+             tf_static: bool = True, session_gap_s: float = SESSION_GAP_S) -> SimulationSummary:
     """Write the bags, ground truth, revisits, plot and summary of a simulated multi-session run.
 
     Args:
@@ -287,7 +296,11 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
             those frames, as real drivers publish them.
         tf_static: write the mounts on ``/tf_static`` (False: a bag without it, as recorded by a
             user who forgot it; the mounts must then be given to ``map`` / the node).
+        session_gap_s: time between the starts of consecutive sessions (s, >= 0; 0: robots mapping
+            at the same time, each in its own bag).
     """
+    if not session_gap_s >= 0:
+        raise RtabmapError(f"session gap {session_gap_s} s is out of range: >= 0")
     t0 = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -297,7 +310,7 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
             raise RtabmapError(f"{out / f'session_{k}'} already exists: remove it or choose another --out")
     rig = sensor_rig(laser_mount, camera_mount)
     world = build_world(seed)
-    truths = make_sessions(world, sessions, small)
+    truths = make_sessions(world, sessions, small, session_gap_s)
     jobs = jobs or min(2, os.cpu_count() or 1)
     if jobs > 1 and sessions > 1:
         with ProcessPoolExecutor(max_workers=min(jobs, sessions), initializer=_init_worker, initargs=(seed,)) as pool:
@@ -308,6 +321,8 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
         _WORKER_WORLD = world
         bags = [_write_session_bag(out, seed, s, raw_images, rig, tf_static) for s in truths]
     write_ground_truth(out / "ground_truth.txt", truths)
+    for s in truths:
+        write_ground_truth(out / f"ground_truth_{s.index}.txt", [s])
     revisits = find_revisits(truths)
     write_revisits(out / "loops.csv", revisits)
     plot_world(out / "world.png", world, truths)
@@ -334,6 +349,7 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
                      float(world.p0[:, 0].max()), float(world.p0[:, 1].max())],
     }
     info["images"] = "raw" if raw_images else "jpeg+png"
+    info["session_gap_s"] = session_gap_s
     info["mounts"] = {"base_to_laser": [round(float(v), 6) for v in transforms.to_xyz_rpy(rig.T_base_laser)],
                       "base_to_camera": [round(float(v), 6) for v in transforms.to_xyz_rpy(rig.camera.T_base_camera)],
                       "tf_static": tf_static}

@@ -6,6 +6,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+from cli_result import error_line
+
 TIMEOUT_S = 300
 
 
@@ -14,20 +16,12 @@ def run(*args) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=TIMEOUT_S)
 
 
-def _error_line(result: subprocess.CompletedProcess) -> str:
-    assert result.returncode == 2, result.stdout + result.stderr
-    assert "Traceback" not in result.stderr, result.stderr
-    lines = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
-    assert len(lines) == 1, result.stderr
-    return lines[0]
-
-
 def test_detect_on_a_folder_of_unreadable_images_is_an_error(tmp_path):
     images = tmp_path / "images"
     images.mkdir()
     (images / "1.jpg").write_bytes(b"not a jpeg")
     (images / "2.png").write_bytes(b"")
-    line = _error_line(run("detect", images, "--out", tmp_path / "out", "--no-progress"))
+    line = error_line(run("detect", images, "--out", tmp_path / "out", "--no-progress"))
     assert "none of the 2 image files" in line and str(images) in line
 
 
@@ -35,6 +29,6 @@ def test_failed_export_leaves_no_out_folder(tmp_path):
     bad_db = tmp_path / "map.db"
     bad_db.write_bytes(b"this is not an SQLite database" * 10)
     out = tmp_path / "export"
-    _error_line(run("export", bad_db, "--out", out))
+    error_line(run("export", bad_db, "--out", out))
     assert not out.exists()
     assert bad_db.read_bytes() == b"this is not an SQLite database" * 10

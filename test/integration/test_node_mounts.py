@@ -12,32 +12,24 @@ them they are measurably worse. ``map --set`` takes the same two for a bag witho
 from __future__ import annotations
 
 import random
-import time
+from pathlib import Path
 
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from rtabmap_ros2.io.trajectory import ate, read_tum  # noqa: E402
 from rtabmap_ros2.ros.node import RtabmapNode  # noqa: E402
-from rtabmap_ros2.ros.play import play_bag  # noqa: E402
 
-from ros_spin import spinning  # noqa: E402
+from node_play import play_into_node  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
 DOMAIN_ID = random.randint(1, 99)
 LASER_MOUNT = [0.25, 0.1, 0.3, 0.0, 0.0, 0.3]
 CAMERA_MOUNT = [0.15, -0.05, 0.5, -1.5708, 0.0, -1.3]
-# Playback in real time, as a robot's drivers publish: faster replay interleaves the next set's
-# messages with the current one's, and the approximate synchroniser then emitted 39-44 of the 47 sets
-# (none lost in transport) depending on thread scheduling.
-PLAY_RATE = 1.0
 ATE_MAX_M = 0.02
 MIN_PROCESSED_RATIO = 0.95
 
@@ -55,26 +47,14 @@ def recording(tmp_path_factory):
 def _play_into_node(context, tmp_path, bag, **params) -> tuple[RtabmapNode, float]:
     """Play ``bag`` into a node with ``params``; export; return the node (destroyed) and the ATE (m)."""
     overrides = {"database_path": str(tmp_path / "map.db"), "export_dir": str(tmp_path / "exports"), **params}
-    node = RtabmapNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
-    player = Node("player", context=context)
-    executor = MultiThreadedExecutor(num_threads=3, context=context)
-    executor.add_node(node)
-    executor.add_node(player)
-    try:
-        with spinning(executor):
-            stats = play_bag(bag, player, rate=PLAY_RATE, delay_s=1.5)
-            assert not stats.unacknowledged, stats
-            deadline = time.monotonic() + 30
-            while time.monotonic() < deadline and node.frames_processed + node.frames_dropped < node._sync.emitted:
-                time.sleep(0.1)
-            response = node._export_global_map(Trigger.Request(), Trigger.Response())
-            assert response.success, response.message
-    finally:
-        player.destroy_node()
-        node.destroy_node()
-    from pathlib import Path
 
-    estimate = read_tum(Path(response.message) / "poses.txt")
+    def export(node):
+        response = node._export_global_map(Trigger.Request(), Trigger.Response())
+        assert response.success, response.message
+        return Path(response.message)
+
+    node, folder = play_into_node(context, bag, overrides, before_destroy=export)
+    estimate = read_tum(folder / "poses.txt")
     return node, ate(estimate, read_tum(bag.parent / "ground_truth.txt")).rmse_m
 
 

@@ -85,3 +85,23 @@ def test_ate_without_common_stamps_raises(rng):
     gt = random_walk(rng, 10)
     with pytest.raises(DatasetError, match="match a ground-truth stamp"):
         ate(Trajectory(gt.stamps_ns + 10 * NS * 1000, gt.poses), gt)
+
+
+def test_ate_sessions_matches_each_session_with_its_own_ground_truth():
+    """Two robots with the same stamps: matched by stamp alone, they would mix (ate() needs unique
+    stamps); per session, an estimate off by a rigid motion has no error, a moved node some."""
+    from rtabmap_ros2.core import transforms
+    from rtabmap_ros2.io.trajectory import Trajectory, ate_sessions
+
+    stamps = np.arange(10, dtype=np.int64) * 1_000_000_000
+    line = np.stack([transforms.from_xyz_rpy([x, 0, 0, 0, 0, 0]) for x in range(10)])
+    other = np.stack([transforms.from_xyz_rpy([0, y, 0, 0, 0, 0]) for y in range(10)])
+    truths = {0: Trajectory(stamps, line), 1: Trajectory(stamps, other)}
+    moved = transforms.from_xyz_rpy([3, -2, 0, 0, 0, 0.4])
+    estimates = {k: Trajectory(t.stamps_ns, moved @ t.poses) for k, t in truths.items()}
+    result = ate_sessions(estimates, truths)
+    assert result.matched == 20 and result.rmse_m < 1e-9
+    estimates[1].poses[4, 0, 3] += 0.5
+    assert ate_sessions(estimates, truths).max_m > 0.3
+    with pytest.raises(DatasetError, match="no ground truth"):
+        ate_sessions(estimates, {0: truths[0]})
