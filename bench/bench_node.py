@@ -25,7 +25,8 @@
    worker's time per frame by part as published on ``info`` (``node_time_ms/<part>``: median, p95,
    max per session), the nodes of the map, the frames merged into the previous node by rehearsal
    (``merged_id`` on ``info``), and the map's connected components. ``--two-sessions-only`` runs
-   this section alone; ``--rates`` chooses the rates.
+   this section alone; ``--rates`` chooses the rates; ``--full-sessions`` plays the two full
+   sessions (~300 and ~400 frames, maps of ~700 nodes) instead of the small ones (-> ``two_sessions_full``).
 
 Prints a table and writes ``bench/results/node.json`` (sections not run keep their last results).
 """
@@ -288,6 +289,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--two-sessions-only", action="store_true", help="section 3 only")
     parser.add_argument("--rates", type=float, nargs="+", default=TWO_SESSION_RATES,
                         help="playback speeds of section 3")
+    parser.add_argument("--full-sessions", action="store_true",
+                        help="section 3 on the two full simulated sessions instead of the small ones")
     args = parser.parse_args(argv)
 
     old = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
@@ -298,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
 
         runs = []
         with tempfile.TemporaryDirectory() as tmp:
-            simulate(Path(tmp), sessions=2, small=True, seed=TWO_SESSION_SEED, raw_images=True,
+            simulate(Path(tmp), sessions=2, small=not args.full_sessions, seed=TWO_SESSION_SEED, raw_images=True,
                      laser_mount=LASER_MOUNT, camera_mount=CAMERA_MOUNT, tf_static=False)
             bags = [Path(tmp) / "session_1", Path(tmp) / "session_2"]
             for rate in args.rates:
@@ -306,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
                 if r is not None:
                     runs.append(r)
                     _print_two_sessions(r)
-        RESULTS.write_text(json.dumps({**old, "two_sessions": runs}, indent=2))
+        key = "two_sessions_full" if args.full_sessions else "two_sessions"
+        RESULTS.write_text(json.dumps({**old, key: runs}, indent=2))
         print(f"wrote {RESULTS}")
         return 0
     results: dict = {"conversion": bench_conversion(30 if args.quick else 200)}
