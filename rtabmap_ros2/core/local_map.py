@@ -90,6 +90,8 @@ class LocalMapper:
         self._resolve_next = False
         self._grid: Optional[GridAccumulator] = None
         self._grid_cast: dict[int, tuple[np.ndarray, LaserScan]] = {}   # node -> (pose, scan) cast
+        # Nodes not cast at their current pose after the last grid() (a budget left them).
+        self.grid_pending = 0
 
     def neighbor_link(self, previous: Signature, new: Signature, T_odom: np.ndarray, info: np.ndarray) -> Link:
         """Neighbour link from odometry, refined by scan matching when enabled (planar, scans)."""
@@ -139,35 +141,61 @@ class LocalMapper:
         gone = set(nodes)
         self.links = [link for link in self.links if not {link.from_id, link.to_id} & gone]
 
-    def grid(self) -> Optional[OccupancyGrid]:
+    def grid(self, max_casts: Optional[int] = None) -> Optional[OccupancyGrid]:
         """Occupancy grid of the local map from the nodes' laser scans, or None without scans.
 
         Incremental: new nodes are ray-cast into the previous grid; a node that left the local
         map or whose optimised pose moved (more than :data:`GRID_RECAST_CELLS` of a cell) is taken
         back out at the pose it was cast at and cast again at its new pose, so a frame costs the
-        scans that changed, not the whole map's; when most of them moved (a loop closure) the grid
-        is cast again from scratch, which is then cheaper.
+        scans that changed, not the whole map's. Without ``max_casts``, when most of them moved
+        (a loop closure) the grid is cast again from scratch, which is then cheaper.
+
+        With ``max_casts`` (the live node: a loop closure on a map of 700 nodes moved them all and
+        recasting them took 1-4 s of a frame), at most that many scans are cast (taken back or
+        added) per call: the nodes that left first, then the moved and new ones nearest the newest
+        node, so the grid around the robot is right first and the rest follows over the next
+        calls (``grid_pending`` says how many nodes are not cast at their current pose yet).
         """
         signatures = self.memory.signatures
         scans = {n: signatures[n].scan for n in self.poses
                  if n in signatures and signatures[n].scan is not None}
         if not scans:
+            self.grid_pending = 0
             return None
         cast = self._grid_cast
         tolerance_m = GRID_RECAST_CELLS * self.params.grid.resolution
         tolerance_rad = tolerance_m / (self.params.grid.range_max or GRID_DEFAULT_RANGE_M)
         stale = [n for n, (pose, _) in cast.items()
                  if n not in scans or not _same_pose(pose, self.poses[n], tolerance_m, tolerance_rad)]
-        if self._grid is None or 2 * len(stale) > len(cast):
+        if self._grid is None or (max_casts is None and 2 * len(stale) > len(cast)):
             self._grid = GridAccumulator(self.params.grid)
             cast.clear()
-        for node in stale if cast else ():
+            stale = []
+        budget = len(scans) + 2 * len(stale) if max_casts is None else max(1, max_casts)
+        for node in [n for n in stale if n not in scans]:   # left the local map: taken back first
+            if budget <= 0:
+                break
             pose, scan = cast.pop(node)
             self._grid.add(pose, scan, weight=-1)
-        for node, scan in scans.items():
-            if node not in cast:
-                self._grid.add(self.poses[node], scan)
-                cast[node] = (self.poses[node], scan)
+            budget -= 1
+        moved = set(stale)
+        todo = [n for n in scans if n not in cast or n in moved]
+        if max_casts is not None and len(todo) > budget:
+            robot = self.poses[max(self.poses)][:2, 3]
+            todo.sort(key=lambda n: float(np.linalg.norm(self.poses[n][:2, 3] - robot)))
+        for node in todo:
+            cost = 2 if node in cast else 1
+            if cost > budget:
+                break
+            if node in cast:
+                pose, scan = cast.pop(node)
+                self._grid.add(pose, scan, weight=-1)
+            self._grid.add(self.poses[node], scans[node])
+            cast[node] = (self.poses[node], scans[node])
+            budget -= cost
+        self.grid_pending = sum(1 for n in scans if n not in cast) + sum(
+            1 for n, (pose, _) in cast.items()
+            if n not in scans or not _same_pose(pose, self.poses[n], tolerance_m, tolerance_rad))
         return self._grid.grid()
 
     def new_node_pose(self, node: int) -> Optional[np.ndarray]:

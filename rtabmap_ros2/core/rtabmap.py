@@ -163,9 +163,10 @@ class Rtabmap:
         """The optimised local map of the newest node (poses in the map frame)."""
         return self.local.snapshot()
 
-    def local_grid(self) -> Optional[OccupancyGrid]:
-        """Occupancy grid of the local map from the nodes' laser scans, or None without scans."""
-        return self.local.grid()
+    def local_grid(self, max_casts: Optional[int] = None) -> Optional[OccupancyGrid]:
+        """Occupancy grid of the local map from the nodes' laser scans, or None without scans;
+        ``max_casts`` bounds the scans cast per call (LocalMapper.grid)."""
+        return self.local.grid(max_casts)
 
     def trigger_new_map(self) -> int:
         """Start a new map (session) at the next frame; returns its id."""

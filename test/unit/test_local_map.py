@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from corridor_sessions import ODOM_INFO, inter_link, two_corridor_sessions
+from corridor_sessions import ODOM_INFO, corridor_scan, inter_link, two_corridor_sessions
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Link, LinkType, consensus_guess, default_information
 from rtabmap_ros2.core.params import Params, RegistrationParams
@@ -284,3 +284,48 @@ def test_local_map_after_a_rehearsal_merge_and_a_failed_optimisation(tmp_path):
         assert all(l.from_id in local.poses and l.to_id in local.poses for l in local.links)
         for node, pose in local.poses.items():
             np.testing.assert_allclose(pose, before.poses[node])
+
+
+def test_a_bounded_local_grid_update_puts_the_robots_surroundings_right_first_then_converges(tmp_path):
+    """The live node bounds the scans cast per local grid update: after a loop closure moved the
+    whole map (here 30 nodes by 0.3 m), the first update recasts the nodes nearest the robot, and
+    the next ones the rest, until the grid equals casting every scan at its new pose."""
+    from rtabmap_ros2.core.grid import GridAccumulator
+
+    rtabmap = two_corridor_sessions(tmp_path)
+    try:
+        local = rtabmap.local
+        local.params = rtabmap.params.with_value("grid.range_max", 2.0)  # each scan touches cells within 2 m
+        scans = {1 + k: corridor_scan(0.5 * k, 0.0) for k in range(30)}
+        for node, scan in scans.items():
+            rtabmap.memory.signatures[node].scan = scan
+        old = {node: transforms.from_xy_yaw(0.5 * (node - 1), 0.0, 0.0) for node in scans}
+        local.poses = dict(old)
+        local.grid(max_casts=100)
+        assert local.grid_pending == 0
+        new = {node: transforms.from_xy_yaw(0.3, 0.0, 0.0) @ T for node, T in old.items()}
+        local.poses = dict(new)
+        reference = GridAccumulator(local.params.grid)   # the same casts, in one go
+        for node in scans:
+            reference.add(old[node], scans[node])
+        for node in scans:
+            reference.add(old[node], scans[node], weight=-1)
+            reference.add(new[node], scans[node])
+        expected = reference.grid()
+        xs = np.arange(-3.0, 18.0, 0.05) + 0.025
+        ys = np.arange(-1.5, 2.0, 0.05) + 0.025
+        points = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+        near_robot = points[:, 0] >= 15.5     # only nodes 28-30 (the nearest) cast there
+        far = points[:, 0] <= 3.0
+        first = local.grid(max_casts=10)      # a moved node costs 2 casts: the 5 nearest
+        assert local.grid_pending == 25
+        assert np.array_equal(first.value_at(points[near_robot]), expected.value_at(points[near_robot]))
+        assert not np.array_equal(first.value_at(points[far]), expected.value_at(points[far]))
+        calls = 1
+        while local.grid_pending:
+            grid = local.grid(max_casts=10)
+            calls += 1
+        assert calls == 6
+        assert np.array_equal(grid.value_at(points), expected.value_at(points))
+    finally:
+        rtabmap.close()

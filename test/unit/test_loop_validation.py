@@ -7,11 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from corridor_sessions import ODOM_INFO, inter_link, two_corridor_sessions
+from corridor_sessions import ODOM_INFO, corridor_scan, inter_link, two_corridor_sessions
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Link, LinkType, default_information
 from rtabmap_ros2.core.loop_validation import judged_links, max_error_ratio
-from rtabmap_ros2.core.sensor import LaserScan
 
 
 def test_max_error_ratio_flags_a_link_bent_beyond_its_standard_deviation():
@@ -147,24 +146,6 @@ def test_two_agreeing_loop_closures_do_not_merge_maps(tmp_path):
         rtabmap.close()
 
 
-def _corridor_scan(x: float, y: float, n: int = 481) -> LaserScan:
-    """A 360-degree scan from (x, y), yaw 0, in the corridor both sessions drive (x -2..16, y -1..1.5,
-    door frames at x = 3, 8 and 14.5)."""
-    walls = [(-2, -1, 16, -1), (-2, 1.5, 16, 1.5), (-2, -1, -2, 1.5), (16, -1, 16, 1.5)]
-    for door in (3.0, 8.0, 14.5):
-        walls += [(door, -1, door, -0.4), (door, 0.9, door, 1.5)]
-    walls = np.array(walls, float)
-    angles = -np.pi + 2 * np.pi * np.arange(n) / n
-    d = np.stack([np.cos(angles), np.sin(angles)], axis=1)[:, None, :]
-    p, e = walls[None, :, :2] - np.array([x, y]), (walls[:, 2:] - walls[:, :2])[None]
-    cross = d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (p[..., 0] * e[..., 1] - p[..., 1] * e[..., 0]) / cross
-        u = (p[..., 0] * d[..., 1] - p[..., 1] * d[..., 0]) / cross
-    t = np.where((t > 0) & (u >= 0) & (u <= 1), t, np.inf).min(axis=1)
-    return LaserScan(np.where(t < 30, t, np.inf), -np.pi, 2 * np.pi / n, 0.1, 30.0)
-
-
 def test_a_map_merge_the_scans_contradict_is_refused(tmp_path):
     """Three look-alike loop closures shifted alike (15 m along the corridor) agree with each other;
     the sessions' scans do not: one session's end wall and door frames fall in the other's free
@@ -173,8 +154,8 @@ def test_a_map_merge_the_scans_contradict_is_refused(tmp_path):
     try:
         memory = rtabmap.memory
         for k in range(30):
-            memory.signatures[1 + k].scan = _corridor_scan(0.5 * k, 0.0)
-            memory.signatures[31 + k].scan = _corridor_scan(0.5 * k, 0.5)
+            memory.signatures[1 + k].scan = corridor_scan(0.5 * k, 0.0)
+            memory.signatures[31 + k].scan = corridor_scan(0.5 * k, 0.5)
         rtabmap.local.kept_poses.update({1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)})  # session 0
         rtabmap.local.poses = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(25)}
         look_alikes = [inter_link(a, b, error_xy=(15.0, 0.0)) for a, b in ((35, 5), (41, 11), (47, 17))]
