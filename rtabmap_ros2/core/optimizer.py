@@ -475,7 +475,7 @@ def _se3_g2o_scaling() -> np.ndarray:
 def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
     """Read a g2o pose graph (VERTEX_SE2/EDGE_SE2 or VERTEX_SE3:QUAT/EDGE_SE3:QUAT).
 
-    Information matrices are read as g2o and gtsam users expect: one that is symmetric (g2o
+    Information matrices: one that is symmetric (g2o
     stores the upper triangle) but not positive definite is replaced by the nearest positive
     definite matrix (:func:`nearest_positive_definite`), with one warning naming those edges.
 
