@@ -165,37 +165,37 @@ class LocalMapper:
         cast = self._grid_cast
         tolerance_m = GRID_RECAST_CELLS * self.params.grid.resolution
         tolerance_rad = tolerance_m / (self.params.grid.range_max or GRID_DEFAULT_RANGE_M)
-        stale = [n for n, (pose, _) in cast.items()
-                 if n not in scans or not _same_pose(pose, self.poses[n], tolerance_m, tolerance_rad)]
-        if self._grid is None or (max_casts is None and 2 * len(stale) > len(cast)):
+        left = [n for n in cast if n not in scans]
+        moved = {n for n in scans if n in cast
+                 and not _same_pose(cast[n][0], self.poses[n], tolerance_m, tolerance_rad)}
+        if self._grid is None or (max_casts is None and 2 * (len(left) + len(moved)) > len(cast)):
             self._grid = GridAccumulator(self.params.grid)
             cast.clear()
-            stale = []
-        budget = len(scans) + 2 * len(stale) if max_casts is None else max(1, max_casts)
-        for node in [n for n in stale if n not in scans]:   # left the local map: taken back first
-            if budget <= 0:
-                break
+            left, moved = [], set()
+        todo = [n for n in scans if n not in cast or n in moved]
+        budget = len(left) + len(todo) + len(moved) if max_casts is None else max(1, max_casts)
+        taken_back = 0
+        for node in left[:budget]:   # left the local map: taken back first
             pose, scan = cast.pop(node)
             self._grid.add(pose, scan, weight=-1)
-            budget -= 1
-        moved = set(stale)
-        todo = [n for n in scans if n not in cast or n in moved]
+            taken_back += 1
+        budget -= taken_back
         if max_casts is not None and len(todo) > budget:
             robot = self.poses[max(self.poses)][:2, 3]
             todo.sort(key=lambda n: float(np.linalg.norm(self.poses[n][:2, 3] - robot)))
+        done = 0
         for node in todo:
-            cost = 2 if node in cast else 1
+            cost = 2 if node in moved else 1
             if cost > budget:
                 break
-            if node in cast:
+            if node in moved:
                 pose, scan = cast.pop(node)
                 self._grid.add(pose, scan, weight=-1)
             self._grid.add(self.poses[node], scans[node])
             cast[node] = (self.poses[node], scans[node])
             budget -= cost
-        self.grid_pending = sum(1 for n in scans if n not in cast) + sum(
-            1 for n, (pose, _) in cast.items()
-            if n not in scans or not _same_pose(pose, self.poses[n], tolerance_m, tolerance_rad))
+            done += 1
+        self.grid_pending = len(left) - taken_back + len(todo) - done
         return self._grid.grid()
 
     def new_node_pose(self, node: int) -> Optional[np.ndarray]:
