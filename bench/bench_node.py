@@ -34,9 +34,11 @@ Prints a table and writes ``bench/results/node.json`` (sections not run keep the
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -77,70 +79,103 @@ def bench_conversion(repeats: int) -> dict[str, dict[str, float]]:
     return out
 
 
-def bench_replay(bag: Path, qos: str, rate: float) -> dict | None:
-    """Node in this process (default parameters but ``qos``), ``bag`` played by ``play`` in a subprocess."""
+@contextmanager
+def _node_in_process(tmp: str, parameters: dict, extra_nodes=lambda ctx: []):
+    """An ``rtabmap`` node (database and exports in ``tmp``, ``parameters`` besides) spinning in
+    this process on its own ROS domain, with the nodes ``extra_nodes(ctx)`` makes; yields
+    ``(node, env)``, env being what a ``play`` subprocess needs to reach it. Shut down after."""
     import os
     import random
-    import subprocess
-    import tempfile
     import threading
 
-    try:
-        import rclpy
-        from rclpy.executors import MultiThreadedExecutor
-        from rclpy.parameter import Parameter
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.parameter import Parameter
 
-        from rtabmap_ros2.ros.node import RtabmapNode
-    except ImportError as exc:
-        print(f"replay: skipped ({exc})")
-        return None
+    from rtabmap_ros2.ros.node import RtabmapNode
 
     domain = random.randint(150, 230)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     os.environ.update(env)
-    with tempfile.TemporaryDirectory() as tmp:
-        ctx = rclpy.Context()
-        rclpy.init(context=ctx, domain_id=domain)
-        node = RtabmapNode(context=ctx, parameter_overrides=[
-            Parameter("database_path", value=str(Path(tmp) / "bench.db")),
-            Parameter("export_dir", value=str(Path(tmp) / "exports")), Parameter("qos", value=qos)])
-        executor = MultiThreadedExecutor(num_threads=2, context=ctx)
-        executor.add_node(node)
-        thread = threading.Thread(target=executor.spin, daemon=True)
-        thread.start()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    overrides = {"database_path": str(Path(tmp) / "bench.db"), "export_dir": str(Path(tmp) / "exports"),
+                 **parameters}
+    node = RtabmapNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+    others = extra_nodes(ctx)
+    executor = MultiThreadedExecutor(num_threads=2 + len(others), context=ctx)
+    for n in (node, *others):
+        executor.add_node(n)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        yield node, env
+    finally:
+        executor.shutdown()
+        thread.join(timeout=10)
+        for n in (node, *others):
+            n.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def _play(bag: Path, rate: float, env: dict, timeout_s: float):
+    """``rtabmap-ros2 play`` of ``bag`` in a subprocess: the RGB messages it published (a
+    one-element list, empty when it did not say) and the finished process."""
+    import subprocess
+
+    play = subprocess.run([sys.executable, "-m", "rtabmap_ros2.cli.cli", "play", str(bag), "--delay", "2",
+                           "--rate", str(rate)], env=env, capture_output=True, text=True, timeout=timeout_s)
+    return [int(line.rsplit(":", 2)[-1].split()[0]) for line in play.stderr.splitlines()
+            if "/rgb/image" in line and "messages" in line][:1], play
+
+
+def _drain(node, timeout_s: float, also=lambda: False) -> None:
+    """Wait until every synchronised set is processed or dropped (and while ``also()``)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and (node.frames_processed + node.frames_dropped < node._sync.emitted
+                                           or also()):
+        time.sleep(0.1)
+
+
+def _counters(node) -> dict:
+    """The node's frame and message counters."""
+    return {"sets_synchronised": node._sync.emitted, "frames_processed": node.frames_processed,
+            "frames_dropped_queue": node.frames_dropped, "sync_dropped": dict(node._sync.dropped),
+            "messages_lost_in_transport": dict(node.messages_lost),
+            "bad_messages": {f"{t} ({k})": n for (t, k), n in node.bad_messages.items()},
+            "frame_errors": dict(node.frame_errors)}
+
+
+def bench_replay(bag: Path, qos: str, rate: float) -> dict | None:
+    """Node in this process (default parameters but ``qos``), ``bag`` played by ``play`` in a subprocess."""
+    import os
+    import tempfile
+
+    try:
+        importlib.import_module("rtabmap_ros2.ros.node")   # rclpy and the messages
+    except ImportError as exc:
+        print(f"replay: skipped ({exc})")
+        return None
+
+    with tempfile.TemporaryDirectory() as tmp, _node_in_process(tmp, {"qos": qos}) as (node, env):
         load_before = os.getloadavg()[0]
         t0 = time.monotonic()
-        play = subprocess.run([sys.executable, "-m", "rtabmap_ros2.cli.cli", "play", str(bag), "--delay", "2",
-                               "--rate", str(rate)], env=env, capture_output=True, text=True, timeout=900)
         # play returns once reliable subscribers acknowledged everything; then let the queue drain.
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and node.frames_processed + node.frames_dropped < node._sync.emitted:
-            time.sleep(0.1)
+        played, play = _play(bag, rate, env, timeout_s=900)
+        _drain(node, 30)
         wall = time.monotonic() - t0
         latencies = np.array(node.latencies_s) * 1e3
-        played = [int(line.rsplit(":", 2)[-1].split()[0]) for line in play.stderr.splitlines()
-                  if "/rgb/image" in line and "messages" in line]
         result = {
             "frames_played": played[0] if played else None,
-            "sets_synchronised": node._sync.emitted,
-            "frames_processed": node.frames_processed,
+            **_counters(node),
             "subscribed": {s: f"{c.topic} ({'reliable' if r == 1 else 'best effort'})"
                            for s, (c, r) in node.subscriptions_.current.items()},
-            "frames_dropped_queue": node.frames_dropped,
-            "messages_lost_in_transport": dict(node.messages_lost),
-            "sync_dropped": dict(node._sync.dropped),
-            "bad_messages": {f"{t} ({k})": n for (t, k), n in node.bad_messages.items()},
-            "frame_errors": dict(node.frame_errors),
             "latency_median_ms": float(np.median(latencies)) if latencies.size else None,
             "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else None,
             "wall_s": wall, "play_returncode": play.returncode,
             "play_all_acknowledged": "did not acknowledge" not in play.stderr,
             "load_average_1min": [load_before, os.getloadavg()[0]],
         }
-        executor.shutdown()
-        thread.join(timeout=10)
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
     ratio = result["frames_processed"] / result["frames_played"] if result["frames_played"] else 0.0
     result["processed_ratio"] = ratio
     print(f"replay {bag.parent.name} qos {qos} (rate {rate:g}): played {result['frames_played']}, "
@@ -163,92 +198,59 @@ def two_session_replay(bags: list[Path], rate: float) -> dict | None:
     """``bags`` played one after the other into one node (defaults + mounts) at ``rate``; the
     node's counters, latencies and the per-part times it published on ``info``."""
     import os
-    import random
-    import subprocess
     import tempfile
-    import threading
 
     try:
-        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.executors import MultiThreadedExecutor
         from rclpy.node import Node
-        from rclpy.parameter import Parameter
 
         from rtabmap_ros2.core.global_map import load_global_map
         from rtabmap_ros2.ros.conversions import statistics_from_msg
         from rtabmap_ros2.ros.frame_times import INFO_KEY_PREFIX
-        from rtabmap_ros2.ros.node import RtabmapNode
     except ImportError as exc:
         print(f"two-session replay: skipped ({exc})")
         return None
 
-    domain = random.randint(150, 230)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    infos: list[dict[str, str]] = []
+
+    def listener(ctx) -> list:
+        node = Node("bench_info", context=ctx)
+        node.create_subscription(DiagnosticArray, "info", lambda m: infos.append(statistics_from_msg(m)), 100)
+        return [node]
+
+    mounts = {"base_to_laser": LASER_MOUNT, "base_to_camera": CAMERA_MOUNT}
     with tempfile.TemporaryDirectory() as tmp:
-        ctx = rclpy.Context()
-        rclpy.init(context=ctx, domain_id=domain)
-        node = RtabmapNode(context=ctx, parameter_overrides=[
-            Parameter("database_path", value=str(Path(tmp) / "bench.db")),
-            Parameter("export_dir", value=str(Path(tmp) / "exports")),
-            Parameter("base_to_laser", value=LASER_MOUNT), Parameter("base_to_camera", value=CAMERA_MOUNT)])
-        infos: list[dict[str, str]] = []
-        listener = Node("bench_info", context=ctx)
-        listener.create_subscription(DiagnosticArray, "info", lambda m: infos.append(statistics_from_msg(m)), 100)
-        executor = MultiThreadedExecutor(num_threads=3, context=ctx)
-        executor.add_node(node)
-        executor.add_node(listener)
-        thread = threading.Thread(target=executor.spin, daemon=True)
-        thread.start()
-        load_before = os.getloadavg()[0]
-        played, sessions_first_info = [], []
-        t0 = time.monotonic()
-        for bag in bags:
-            sessions_first_info.append(len(infos))
-            play = subprocess.run([sys.executable, "-m", "rtabmap_ros2.cli.cli", "play", str(bag), "--delay", "2",
-                                   "--rate", str(rate)], env=env, capture_output=True, text=True, timeout=1800)
-            played += [int(line.rsplit(":", 2)[-1].split()[0]) for line in play.stderr.splitlines()
-                       if "/rgb/image" in line and "messages" in line][:1]
-        deadline = time.monotonic() + DRAIN_TIMEOUT_S
-        while time.monotonic() < deadline and (node.frames_processed + node.frames_dropped < node._sync.emitted
-                                               or len(infos) < node.frames_processed):
-            time.sleep(0.1)
-        wall = time.monotonic() - t0
-        latencies = np.array(node.latencies_s) * 1e3
-        result = {
-            "rate": rate, "frames_played": sum(played), "frames_played_per_session": played,
-            "sets_synchronised": node._sync.emitted, "frames_processed": node.frames_processed,
-            "frames_dropped_queue": node.frames_dropped, "sync_dropped": dict(node._sync.dropped),
-            "messages_lost_in_transport": dict(node.messages_lost),
-            "bad_messages": {f"{t} ({k})": n for (t, k), n in node.bad_messages.items()},
-            "frame_errors": dict(node.frame_errors),
-            "latency_p50_ms": float(np.median(latencies)) if latencies.size else None,
-            "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else None,
-            "latency_max_ms": float(latencies.max()) if latencies.size else None,
-            "rehearsal_merges": sum(1 for info in infos if int(info.get("merged_id", "0") or 0)),
-            "wall_s": wall, "load_average_1min": [load_before, os.getloadavg()[0]],
-        }
-        # Per-part times by session, from info (each message carries the previous frame's).
-        bounds = sessions_first_info + [len(infos)]
-        result["time_ms_by_session"] = []
-        for first, last in zip(bounds, bounds[1:]):
-            rows = infos[first:last]
-            parts = sorted({k for info in rows for k in info if k.startswith(INFO_KEY_PREFIX + "/")})
-            summary = {}
-            for key in parts:
-                v = np.array([float(info[key]) for info in rows if key in info])
-                summary[key.split("/", 1)[1]] = {"median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
-                                                 "max": float(v.max())}
-            core = np.array([float(info["total_time_ms"]) for info in rows if "total_time_ms" in info])
-            if core.size:
-                summary["core total_time_ms"] = {"median": float(np.median(core)),
-                                                 "p95": float(np.percentile(core, 95)), "max": float(core.max())}
-            result["time_ms_by_session"].append(summary)
-        executor.shutdown()
-        thread.join(timeout=10)
-        node.destroy_node()
-        listener.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        with _node_in_process(tmp, mounts, listener) as (node, env):
+            load_before = os.getloadavg()[0]
+            played, sessions_first_info = [], []
+            t0 = time.monotonic()
+            for bag in bags:
+                sessions_first_info.append(len(infos))
+                played += _play(bag, rate, env, timeout_s=1800)[0]
+            _drain(node, DRAIN_TIMEOUT_S, also=lambda: len(infos) < node.frames_processed)
+            wall = time.monotonic() - t0
+            latencies = np.array(node.latencies_s) * 1e3
+            result = {
+                "rate": rate, "frames_played": sum(played), "frames_played_per_session": played,
+                **_counters(node),
+                "latency_p50_ms": float(np.median(latencies)) if latencies.size else None,
+                "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else None,
+                "latency_max_ms": float(latencies.max()) if latencies.size else None,
+                "rehearsal_merges": sum(1 for info in infos if int(info.get("merged_id", "0") or 0)),
+                "wall_s": wall, "load_average_1min": [load_before, os.getloadavg()[0]],
+            }
+            # Per-part times by session, from info (each message carries the previous frame's).
+            bounds = sessions_first_info + [len(infos)]
+            result["time_ms_by_session"] = []
+            for first, last in zip(bounds, bounds[1:]):
+                rows = infos[first:last]
+                parts = sorted({k for info in rows for k in info if k.startswith(INFO_KEY_PREFIX + "/")})
+                summary = {key.split("/", 1)[1]: _spread([float(info[key]) for info in rows if key in info])
+                           for key in parts}
+                core = [float(info["total_time_ms"]) for info in rows if "total_time_ms" in info]
+                if core:
+                    summary["core total_time_ms"] = _spread(core)
+                result["time_ms_by_session"].append(summary)
         from rtabmap_ros2.core.params import Params
 
         global_map = load_global_map(Path(tmp) / "bench.db", Params())
@@ -257,6 +259,12 @@ def two_session_replay(bags: list[Path], rate: float) -> dict | None:
         result["components"] = len(global_map.components)
     result["nodes_plus_merges"] = result["map_nodes"] + result["rehearsal_merges"]
     return result
+
+
+def _spread(values: list[float]) -> dict[str, float]:
+    """Median, p95 and max of a non-empty list."""
+    v = np.asarray(values)
+    return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(v.max())}
 
 
 def _print_two_sessions(r: dict) -> None:
