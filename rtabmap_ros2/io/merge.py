@@ -26,6 +26,7 @@ Inputs are opened with SQLite's ``mode=ro`` and never written.
 
 from __future__ import annotations
 
+import filecmp
 import logging
 import os
 import threading
@@ -178,20 +179,8 @@ def _word_parameters(path: Path, stored: dict) -> dict[str, object]:
 
 def _check_copy(first: MergeInput, other: MergeInput) -> None:
     """A byte copy of an input is the same map twice (it would only loop-close with itself)."""
-    if first.sessions == other.sessions and _same_bytes(first.path, other.path):
+    if first.sessions == other.sessions and filecmp.cmp(first.path, other.path, shallow=False):
         raise DatabaseError(f"input {other.path} is a copy of {first.path} (same content): each map is merged once")
-
-
-def _same_bytes(a: Path, b: Path, chunk: int = 1 << 20) -> bool:
-    if a.stat().st_size != b.stat().st_size:
-        return False
-    with open(a, "rb") as fa, open(b, "rb") as fb:
-        while True:
-            block = fa.read(chunk)
-            if block != fb.read(chunk):
-                return False
-            if not block:
-                return True
 
 
 def _descriptor_text(kind: tuple[str, int]) -> str:
