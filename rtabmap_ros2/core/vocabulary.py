@@ -128,31 +128,19 @@ def _as_ids(word_ids: Iterable[int] | np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(word_ids, dtype=np.int64).reshape(-1))
 
 
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
-# Nearest rows searched per descriptor to find its nearest other row of the frame (itself, exact
-# duplicates and one more): a row is "affected" when any other row is nearer than its second word.
-_WITHIN_FRAME_K = 3
-
-
-def _nearest_other(descriptors: np.ndarray, binary: bool) -> np.ndarray:
-    """(N,) distance of every row to its nearest *other* row of the same array (inf when alone)."""
+def _pairwise_distances(descriptors: np.ndarray, binary: bool) -> np.ndarray:
+    """(N,N) distances between the rows of one frame: Hamming bits (faiss, no BLAS call whose
+    spinning threads would slow the vocabulary search that follows) or L2."""
     n = descriptors.shape[0]
-    k = min(n, _WITHIN_FRAME_K)
-    with _omp_threads(SEARCH_THREADS):
-        if binary:
-            distances, rows = faiss.knn_hamming(descriptors, descriptors, k)
-        else:
-            distances, rows = faiss.knn(descriptors, descriptors, k)
-    distances = distances.astype(np.float64) if binary else np.sqrt(np.maximum(distances, 0.0))
-    others = rows != np.arange(n)[:, None]
-    return np.where(others, distances, np.inf).min(axis=1)
-
-
-def _distances_to(descriptors: np.ndarray, i: int, rows: list[int], binary: bool) -> np.ndarray:
-    """Distances from row i to the given rows: Hamming bits (uint8) or L2 (float)."""
     if binary:
-        return _POPCOUNT[np.bitwise_xor(descriptors[rows], descriptors[i])].sum(axis=1, dtype=np.int64).astype(float)
-    return np.linalg.norm(descriptors[rows] - descriptors[i], axis=1)
+        descriptors = np.ascontiguousarray(descriptors)
+        out = np.empty((n, n), np.int32)
+        faiss.hammings(faiss.swig_ptr(descriptors), faiss.swig_ptr(descriptors), n, n, descriptors.shape[1],
+                       faiss.swig_ptr(out))
+        return out
+    x = descriptors.astype(np.float64)
+    norms = np.einsum("ij,ij->i", x, x)
+    return np.sqrt(np.maximum(norms[:, None] + norms[None, :] - 2.0 * (x @ x.T), 0.0))
 
 
 def _ivf_lists(n_words: int) -> int:
@@ -387,45 +375,51 @@ class Vocabulary:
         """Word ids and new-word flags when a frame's new words are compared together
         (RTAB-Map VWDictionary::addNewWords): per descriptor, in order, the two nearest among the
         vocabulary's 2-NN and this frame's earlier new words pass the NNDR test or a new word is
-        made (ids from ``next_word_id`` on, not inserted yet)."""
+        made (ids from ``next_word_id`` on, in descriptor order, not inserted yet).
+
+        Only an earlier row of the frame nearer than a descriptor's second vocabulary neighbour
+        can change its answer, so the vocabulary's answer is taken for all rows at once and only
+        rows with such a neighbour are walked in order."""
         n = descriptors.shape[0]
-        word_ids = np.full(n, -1, np.int64)
-        is_new = np.zeros(n, bool)
-        if n == 0:
-            return word_ids, is_new
         if self._count:
             distances, neighbours = self._search(descriptors)
             distances = self._distances(distances)
         else:
             distances = np.full((n, NEAREST_NEIGHBOURS), np.inf, np.float32)
             neighbours = np.full((n, NEAREST_NEIGHBOURS), -1, np.int64)
-        distances = np.where(neighbours >= 0, distances, np.inf)
+        distances = np.where(neighbours >= 0, distances, np.inf).astype(np.float64)
         nndr = self.params.nndr
-        # Only a descriptor with another one of the frame nearer than its second vocabulary
-        # neighbour can be changed by the frame's new words; the others keep the vocabulary's answer.
-        affected = (_nearest_other(descriptors, self.binary) < distances[:, 1]).tolist()
-        new_rows: list[int] = []  # descriptors that made a new word, in order
-        next_id = self.next_word_id
-        for i in range(n):
-            d1, d2 = float(distances[i, 0]), float(distances[i, 1])
-            best = int(neighbours[i, 0])
-            if new_rows and affected[i]:
-                own = _distances_to(descriptors, i, new_rows, self.binary)
-                for k in np.argsort(own, kind="stable")[:NEAREST_NEIGHBOURS].tolist():
-                    d = float(own[k])
+        # NNDR (§III-A) as RTAB-Map: d1 <= T_NNDR * d2 (an exact duplicate, d1 = d2 = 0, matches);
+        # fewer than two candidates: a new word.
+        best = neighbours[:, 0].copy()
+        is_new = ~((best >= 0) & np.isfinite(distances[:, 1]) & (distances[:, 0] <= nndr * distances[:, 1]))
+        same_word_as = np.full(n, -1, np.int64)  # row of an earlier new word of the frame matched
+        if n > 1:
+            within = _pairwise_distances(descriptors, self.binary).astype(np.float64)
+            nearer = np.tril(within < distances[:, 1:2], k=-1)  # earlier rows nearer than d2
+            for i in np.flatnonzero(nearer.any(axis=1)).tolist():
+                rows = np.flatnonzero(nearer[i] & is_new)
+                if rows.size == 0:
+                    continue
+                d1, d2 = float(distances[i, 0]), float(distances[i, 1])
+                matched = -1
+                # The frame's two nearest earlier new words, the earlier row first on a tie.
+                for j in rows[np.argsort(within[i, rows], kind="stable")[:NEAREST_NEIGHBOURS]].tolist():
+                    d = float(within[i, j])
                     if d < d1:
-                        d1, d2, best = d, d1, int(word_ids[new_rows[k]])
+                        d1, d2, matched = d, d1, j
                     elif d < d2:
                         d2 = d
-            # NNDR (§III-A) as RTAB-Map: d1 <= T_NNDR * d2 (an exact duplicate, d1 = d2 = 0,
-            # matches); fewer than two candidates: a new word.
-            if best >= 0 and np.isfinite(d2) and d1 <= nndr * d2:
-                word_ids[i] = best
-            else:
-                word_ids[i] = next_id
-                next_id += 1
-                is_new[i] = True
-                new_rows.append(i)
+                if matched >= 0:
+                    accepted = np.isfinite(d2) and d1 <= nndr * d2
+                    same_word_as[i] = matched if accepted else -1
+                else:
+                    accepted = best[i] >= 0 and np.isfinite(d2) and d1 <= nndr * d2
+                is_new[i] = not accepted
+        word_ids = np.where(is_new, -1, best)
+        word_ids[is_new] = np.arange(self.next_word_id, self.next_word_id + int(is_new.sum()), dtype=np.int64)
+        frame_matches = same_word_as >= 0
+        word_ids[frame_matches] = word_ids[same_word_as[frame_matches]]
         return word_ids, is_new
 
     def _distances(self, distances: np.ndarray) -> np.ndarray:

@@ -74,6 +74,76 @@ def test_a_feature_repeated_in_one_image_gives_one_word(vocab, rng):
     np.testing.assert_array_equal(ids[10:20], ids[:10])
 
 
+def _quantize_one_by_one(words: np.ndarray, word_ids: np.ndarray, descriptors: np.ndarray, nndr: float,
+                         next_id: int, distance) -> tuple[list[int], list[bool]]:
+    """RTAB-Map's addNewWords written plainly: each descriptor in order against every word and every
+    new word of the frame made before it; the two nearest (words first on a tie, then the earlier
+    new word) pass d1 <= nndr * d2 or make a new word."""
+    ids, new, new_rows = [], [], []
+    for i, descriptor in enumerate(descriptors):
+        candidates = [(distance(descriptor, w), 0, k, int(word_ids[k])) for k, w in enumerate(words)]
+        candidates += [(distance(descriptor, descriptors[j]), 1, j, ids[j]) for j in new_rows]
+        candidates.sort()
+        if len(candidates) >= 2 and candidates[0][0] <= nndr * candidates[1][0]:
+            ids.append(candidates[0][3])
+            new.append(False)
+        else:
+            ids.append(next_id)
+            new.append(True)
+            new_rows.append(i)
+            next_id += 1
+    return ids, new
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_new_words_compared_together_match_the_one_by_one_rule(rng, binary):
+    """The frame is matched at once; the result is the descriptor-by-descriptor rule's, on a frame
+    with near copies of words, of each other (twice, three times) and of nothing."""
+    def view(base, scale):
+        if binary:
+            return flip_bits(rng, base, scale)
+        return (base + rng.normal(0.0, scale / 100.0, base.shape)).astype(np.float32)
+
+    make = random_binary if binary else (lambda r, n: r.normal(0.0, 1.0, (n, 64)).astype(np.float32))
+    if binary:
+        def distance(a, b):
+            return int(np.unpackbits(np.bitwise_xor(a, b)).sum())
+    else:
+        def distance(a, b):
+            return float(np.linalg.norm(a.astype(np.float64) - b))
+    def towards(a, b, t):
+        """Points on the way from a to b (the first t of the bits that differ, in binary)."""
+        if not binary:
+            return (a + t * (b - a)).astype(np.float32)
+        out = a.copy()
+        for row, other in zip(out, b):
+            bits = np.flatnonzero(np.unpackbits(np.bitwise_xor(row, other)))
+            flips = np.zeros(256, np.uint8)
+            flips[bits[: int(round(t * len(bits)))]] = 1
+            row ^= np.packbits(flips)
+        return out
+
+    vocab = Vocabulary(VocabularyParams(), binary=binary)
+    first = make(rng, 120)
+    # Word pairs A, B close together: a descriptor half way is a new word (d1 = d2); one nearer A
+    # matches A, unless that new word of the frame counts as its second neighbour (then it is new).
+    a = first[:5]
+    b = towards(a, first[5:10], 40 / 128 if binary else 0.15)
+    vocab.add_words(np.arange(1, len(first) + len(b) + 1), np.concatenate([first, b]))
+    fresh = make(rng, 40)
+    frame = np.concatenate([view(first[10:50], 10), fresh, view(fresh, 8), view(fresh[:15], 30),
+                            make(rng, 40), view(first[50:70], 60)])
+    frame = np.concatenate([frame[rng.permutation(len(frame))], towards(a, b, 0.5), towards(a, b, 0.235)])
+    words, word_ids = vocab.descriptors_of(vocab.word_ids()), vocab.word_ids()
+    expected_ids, expected_new = _quantize_one_by_one(words, word_ids, frame, vocab.params.nndr,
+                                                      vocab.next_word_id, distance)
+    ids, is_new = vocab.quantize(frame)
+    assert 20 < sum(expected_new) < len(frame) - 20, "the frame exercises both outcomes"
+    assert all(expected_new[-10:]), "half way between A and B, and near A but nearer the half way word"
+    np.testing.assert_array_equal(is_new, expected_new)
+    np.testing.assert_array_equal(ids, expected_ids)
+
+
 def test_without_comparing_new_words_together_same_image_descriptors_do_not_match(rng):
     vocab = Vocabulary(VocabularyParams(new_words_compared_together=False), binary=True)
     descriptors = random_binary(rng, 50)
