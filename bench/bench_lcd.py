@@ -307,6 +307,8 @@ def main() -> int:
     parser.add_argument("--rerun", action="store_true", help="run ours again even when a run is kept")
     parser.add_argument("--rerun-reference", action="store_true", help="run the reference again")
     parser.add_argument("--no-reference", action="store_true", help="ours only")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="results JSON (default: bench/results/lcd.json, lcd_ablation.json with --ablation)")
     args = parser.parse_args()
     labels = args.configs or (list(ABLATION) if args.ablation else list(CONFIGS))
     unknown = [c for c in labels if c not in ABLATION]
@@ -345,8 +347,8 @@ def main() -> int:
                   f"same decision {res['decision_agreement']:.3f}, dP {c['precision_difference']:+.3f}, "
                   f"dR {c['recall_difference']:+.3f}: {'within' if c['within_tolerances'] else 'OUTSIDE'} tolerances; "
                   f"first differences at images {res['first_differences']}")
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / ("lcd_ablation.json" if args.ablation else "lcd.json")
+    path = args.out or RESULTS / ("lcd_ablation.json" if args.ablation else "lcd.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"frames": args.frames, "sets": args.sets, "configs": labels,
                                 "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "table": lines,
                                 "results": results}, indent=1))
