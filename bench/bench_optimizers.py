@@ -17,7 +17,7 @@ Prints tables and writes ``bench/results/optimizers.json``.
    Cholesky factor stops at the first pivot that is not positive and keeps the remaining entries,
    and ``|R e|^2`` is what it minimises); and by GTSAM's objective (2 x the error of ``readG2o``'s
    graph), which reads SE3 rotation information as on angles, 4 x g2o's weight. ``chi2_ratio`` is
-   ours / GTSAM's factored g2o chi2. Also on "cubicle-like" copies (every 4th edge given an
+   ours / GTSAM's factored g2o chi2 (the "g2o" columns of the printed table). Also on "cubicle-like" copies (every 4th edge given an
    indefinite information matrix, as ``test/integration/test_optimize_cli.py`` makes them).
    ``--compare-to TREE`` also times ``rtabmap-ros2 optimize`` of another checkout of this
    repository (e.g. the commit before a change) in the same alternation (``*_before`` fields).
@@ -119,16 +119,31 @@ def _fmt(row: dict) -> str:
 # -- 0. against GTSAM LM, whole process -----------------------------------------------------------
 
 def _start_file(name: str, folder: Path) -> Path:
-    """The g2o file both optimisers start from: the benchmark itself, CSAIL with its chained vertices
-    added (it has edges only, which ``gtsam.readG2o`` cannot start from), or a cubicle-like copy."""
+    """The g2o file both optimisers start from: the benchmark itself; with its chained vertices
+    added when it has edges only (CSAIL, manhattan: ``gtsam.readG2o`` cannot start from edges);
+    for "<graph>-indefinite", a cubicle-like copy (every INDEFINITE_EVERY-th edge indefinite)."""
     base = name.removesuffix("-indefinite")
     src = DATA / f"{base}.g2o"
     lines = src.read_text().splitlines()
-    if not any(line.startswith("VERTEX") for line in lines):
-        poses, _, planar = read_g2o(src)
-        out = folder / f"{name}.g2o"
+    has_vertices = any(line.startswith("VERTEX") for line in lines)
+    if has_vertices and not name.endswith("-indefinite"):
+        return src
+    if name.endswith("-indefinite"):
+        lines, edge = list(lines), 0
+        for k, line in enumerate(lines):
+            f = line.split()
+            if f and f[0] in INDEFINITE_FIELDS:
+                first, xx, xr, rr = INDEFINITE_FIELDS[f[0]]
+                edge += 1
+                if edge % INDEFINITE_EVERY == 0:
+                    upper = [float(v) for v in f[first:]]
+                    upper[xr] = INDEFINITE_CORRELATION * np.sqrt(upper[xx] * upper[rr])
+                    lines[k] = " ".join(f[:first] + [f"{v:.17g}" for v in upper])
+    vertices = []
+    if not has_vertices:
         from rtabmap_ros2.core import transforms
-        vertices = []
+
+        poses, _, planar = read_g2o(src)   # chained from the first edge's vertex (the measurements only)
         for node_id in sorted(poses):
             if planar:
                 x, y, yaw = transforms.to_xy_yaw(poses[node_id])
@@ -136,23 +151,8 @@ def _start_file(name: str, folder: Path) -> Path:
             else:
                 t, q = poses[node_id][:3, 3], transforms.quat_xyzw(poses[node_id])
                 vertices.append(f"VERTEX_SE3:QUAT {node_id} " + " ".join(f"{v:.17g}" for v in [*t, *q]))
-        out.write_text("\n".join(vertices + lines) + "\n")
-        return out
-    if not name.endswith("-indefinite"):
-        return src
-    out, edge = [], 0
-    for line in lines:
-        f = line.split()
-        if f and f[0] in INDEFINITE_FIELDS:
-            first, xx, xr, rr = INDEFINITE_FIELDS[f[0]]
-            edge += 1
-            if edge % INDEFINITE_EVERY == 0:
-                upper = [float(v) for v in f[first:]]
-                upper[xr] = INDEFINITE_CORRELATION * np.sqrt(upper[xx] * upper[rr])
-                line = " ".join(f[:first] + [f"{v:.17g}" for v in upper])
-        out.append(line)
     path = folder / f"{name}.g2o"
-    path.write_text("\n".join(out) + "\n")
+    path.write_text("\n".join(vertices + lines) + "\n")
     return path
 
 

@@ -11,7 +11,11 @@ quaternion information as on the angles, 4 x g2o's weight: a different objective
 
 Information matrices are kept as the file gives them, positive definite or not (the optimiser
 uses them as gtsam does: :func:`rtabmap_ros2.core.optimizer.information_check`); the reader warns
-once, naming the edges that are not positive definite.
+once, naming the edges that are not positive definite. On an indefinite 3D edge the optimiser's
+factor is gtsam's factor of the file's matrix with the rotation columns halved (gtsam's reading on
+g2o's error) when the Cholesky stops on a translation pivot (they come after the rotation ones in
+gtsam's order); when it stops on a rotation pivot, the raw rotation entries it keeps are scaled by
+1/4 instead (the factor of the scaled matrix).
 
 Reading is done per element at once: the lines are grouped by tag, each group converted by numpy
 in one call; only when that fails is the group read again line by line, to name the bad line.
