@@ -2,7 +2,9 @@
 
 The root (held fixed) is the first vertex of the file (the lowest id), as is standard for g2o
 benchmarks; files with edges only are initialised by chaining the edges. Prints the initial and
-final chi2 (sum of whitened squared errors), the iterations and the time.
+final chi2 (sum of whitened squared errors), the iterations and the time. OUT is IN with the
+optimised vertices: the vertex lines first, then IN's other lines as they are (edges byte for
+byte; with ``--robust``, the rejected loop closures left out).
 """
 
 from __future__ import annotations
@@ -27,9 +29,10 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtabmap_ros2.core.optimizer import optimize, read_g2o, write_g2o
+    from rtabmap_ros2.core.optimizer import optimize
     from rtabmap_ros2.core.params import GraphParams
     from rtabmap_ros2.errors import ParameterError
+    from rtabmap_ros2.io.g2o import read_g2o, write_optimised
 
     if args.iterations < 1:
         raise ParameterError(f"--iterations {args.iterations}: expected >= 1")
@@ -38,8 +41,7 @@ def run(args: argparse.Namespace) -> int:
     params = GraphParams(optimizer=args.optimizer, iterations=args.iterations, robust=args.robust)
     result = optimize(poses, links, root, params, planar, cache=False)
     rejected = {id(link) for link in result.rejected}  # the same Link objects as in ``links``
-    kept = [link for link in links if id(link) not in rejected]
-    write_g2o(args.output, result.poses, kept, planar)
+    write_optimised(args.input, args.output, result.poses, planar, [id(link) not in rejected for link in links])
     print(f"graph: {len(poses)} {'SE2' if planar else 'SE3'} vertices, {len(links)} edges, root {root}")
     print(f"optimizer: {args.optimizer}{' + DCS' if args.robust else ''}")
     print(f"chi2 initial: {result.chi2_initial:.6g}")

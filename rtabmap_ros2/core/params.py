@@ -22,8 +22,6 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
-import yaml
-
 from rtabmap_ros2.errors import ParameterError
 
 
@@ -506,6 +504,8 @@ class Params:
     @classmethod
     def from_yaml(cls, path: str | os.PathLike, base: "Params | None" = None) -> "Params":
         """Parameters from a YAML file (plain nested keys, or a ROS 2 parameter file)."""
+        import yaml   # here, not at import: 10 ms of every command that reads no YAML (optimize)
+
         path = Path(path).expanduser()
         try:
             text = path.read_text()
@@ -521,6 +521,8 @@ class Params:
 
     def with_overrides(self, assignments: list[str] | tuple[str, ...]) -> "Params":
         """Apply ``NAME=VALUE`` strings (``--set`` on the command line); values are parsed as YAML."""
+        import yaml
+
         params = self
         for text in assignments:
             if "=" not in text:
@@ -556,6 +558,8 @@ class Params:
 
     def to_yaml(self, path: str | os.PathLike) -> None:
         """Write the parameters actually used (tools write them next to their results)."""
+        import yaml
+
         Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
 
     def public_items(self) -> Iterator[tuple[str, Any, str, str]]:

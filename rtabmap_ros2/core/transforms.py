@@ -188,6 +188,13 @@ def to_xy_yaw(T: np.ndarray) -> tuple[float, float, float]:
     return float(T[0, 3]), float(T[1, 3]), float(np.arctan2(T[1, 0], T[0, 0]))
 
 
+def to_xy_yaws(T: np.ndarray) -> np.ndarray:
+    """(n, 3) planar parts (x, y, yaw) of (n, 4, 4) transforms (m, m, rad): :func:`to_xy_yaw` on
+    many at once."""
+    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
+    return np.column_stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])])
+
+
 def wrap_angle(angle: float) -> float:
     """``angle`` (rad) wrapped to [-pi, pi)."""
     return float((angle + np.pi) % (2 * np.pi) - np.pi)

@@ -35,9 +35,9 @@ from rtabmap_ros2.core.database import Database
 from rtabmap_ros2.core.global_map import GlobalMap, global_cloud, global_grid, load_global_map
 from rtabmap_ros2.core.graph import LinkType
 from rtabmap_ros2.core.grid import OccupancyGrid, write_ply
-from rtabmap_ros2.core.optimizer import write_g2o
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.errors import DatabaseError, DatasetError
+from rtabmap_ros2.io.g2o import write_g2o
 from rtabmap_ros2.io.trajectory import NS_PER_S, Trajectory, seconds_to_ns, write_tum
 
 log = logging.getLogger(__name__)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from rtabmap_ros2.core.optimizer import read_g2o
+from rtabmap_ros2.io.g2o import read_g2o
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.errors import DatabaseError
 from rtabmap_ros2.io.export import FILES, LINKS_COLUMNS, NODES_COLUMNS, export_global_map

@@ -14,10 +14,11 @@ import pytest
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import LinkType, chain_poses
-from rtabmap_ros2.core.optimizer import optimize, read_g2o
+from rtabmap_ros2.core.optimizer import optimize
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.rtabmap import Rtabmap
 from rtabmap_ros2.core.signature import Signature
+from rtabmap_ros2.io.g2o import read_g2o
 
 NODES = 300
 # Same solution: the batch solver's own convergence tolerance is about this.
