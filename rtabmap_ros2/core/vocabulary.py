@@ -143,6 +143,12 @@ def _pairwise_distances(descriptors: np.ndarray, binary: bool) -> np.ndarray:
     return np.sqrt(np.maximum(norms[:, None] + norms[None, :] - 2.0 * (x @ x.T), 0.0))
 
 
+def _nndr_accepts(d1, d2, nndr: float):
+    """NNDR (§III-A) as RTAB-Map: the nearest candidate at d1 is matched when d1 <= T_NNDR * d2 (an
+    exact duplicate, d1 = d2 = 0, matches); a missing second candidate (d2 inf) fails. Scalars or arrays."""
+    return np.isfinite(d2) & (d1 <= nndr * d2)
+
+
 def _ivf_lists(n_words: int) -> int:
     """Number of IVF lists for a vocabulary of n_words (``IVF_LISTS_PER_SQRT`` sqrt(n))."""
     return max(1, min(int(round(IVF_LISTS_PER_SQRT * math.sqrt(n_words))), n_words // IVF_MIN_POINTS_PER_LIST))
@@ -389,10 +395,8 @@ class Vocabulary:
             neighbours = np.full((n, NEAREST_NEIGHBOURS), -1, np.int64)
         distances = np.where(neighbours >= 0, distances, np.inf).astype(np.float64)
         nndr = self.params.nndr
-        # NNDR (§III-A) as RTAB-Map: d1 <= T_NNDR * d2 (an exact duplicate, d1 = d2 = 0, matches);
-        # fewer than two candidates: a new word.
         best = neighbours[:, 0].copy()
-        is_new = ~((best >= 0) & np.isfinite(distances[:, 1]) & (distances[:, 0] <= nndr * distances[:, 1]))
+        is_new = ~((best >= 0) & _nndr_accepts(distances[:, 0], distances[:, 1], nndr))
         same_word_as = np.full(n, -1, np.int64)  # row of an earlier new word of the frame matched
         if n > 1:
             within = _pairwise_distances(descriptors, self.binary).astype(np.float64)
@@ -410,11 +414,9 @@ class Vocabulary:
                         d1, d2, matched = d, d1, j
                     elif d < d2:
                         d2 = d
-                if matched >= 0:
-                    accepted = np.isfinite(d2) and d1 <= nndr * d2
-                    same_word_as[i] = matched if accepted else -1
-                else:
-                    accepted = best[i] >= 0 and np.isfinite(d2) and d1 <= nndr * d2
+                accepted = (matched >= 0 or best[i] >= 0) and bool(_nndr_accepts(d1, d2, nndr))
+                if matched >= 0 and accepted:
+                    same_word_as[i] = matched
                 is_new[i] = not accepted
         word_ids = np.where(is_new, -1, best)
         word_ids[is_new] = np.arange(self.next_word_id, self.next_word_id + int(is_new.sum()), dtype=np.int64)
@@ -443,10 +445,9 @@ class Vocabulary:
             return result
         distances, neighbours = self._search(descriptors)
         distances = self._distances(distances)
-        # NNDR (§III-A), RTAB-Map's form d1 <= T_NNDR * d2: an exact duplicate of two words
-        # (d1 = d2 = 0) matches instead of making a third. A missing second neighbour (IVF) fails.
+        # A missing second neighbour (IVF) fails the NNDR test.
         found = (neighbours[:, 0] >= 0) & (neighbours[:, 1] >= 0)
-        accepted = found & (distances[:, 0] <= self.params.nndr * distances[:, 1])
+        accepted = found & _nndr_accepts(distances[:, 0], distances[:, 1], self.params.nndr)
         result[accepted] = neighbours[accepted, 0]
         return result
 
