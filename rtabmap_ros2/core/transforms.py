@@ -56,17 +56,22 @@ def from_xyz_quat_xyzw(xyz, quat_xyzw) -> np.ndarray:
     return T
 
 
+def unusable_quaternions(quats_xyzw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((n,) bool, (n,) norms): which of (n, 4) quaternions are no rotation (norm < 1e-9 or not finite)."""
+    n = np.linalg.norm(np.asarray(quats_xyzw, dtype=np.float64).reshape(-1, 4), axis=1)
+    return ~(np.isfinite(n) & (n >= 1e-9)), n
+
+
 def from_xyz_quats_xyzw(xyz: np.ndarray, quats_xyzw: np.ndarray) -> np.ndarray:
     """(n, 4, 4) transforms from (n, 3) translations (m) and (n, 4) quaternions (x, y, z, w),
     each normalised: :func:`from_xyz_quat_xyzw` on many at once.
 
     Raises:
-        ValueError: naming the index of the first quaternion that is not a rotation (norm < 1e-9
-            or not finite).
+        ValueError: naming the index of the first quaternion that is not a rotation
+            (:func:`unusable_quaternions`).
     """
     q = np.asarray(quats_xyzw, dtype=np.float64).reshape(-1, 4)
-    n = np.linalg.norm(q, axis=1)
-    bad = ~(np.isfinite(n) & (n >= 1e-9))
+    bad, n = unusable_quaternions(q)
     if bad.any():
         i = int(np.argmax(bad))
         raise ValueError(f"quaternion {i} {q[i].tolist()} is not a rotation (norm {n[i]})")

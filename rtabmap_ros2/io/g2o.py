@@ -217,13 +217,12 @@ def _block(path: Path, lines: list[str], tag: str, numbers: list[int],
 def _transforms(path: Path, lines: list[str], numbers: list[int], xyz: np.ndarray,
                 quat_xyzw: np.ndarray) -> np.ndarray:
     """(n, 4, 4) transforms of g2o SE3 lines; the line of a quaternion that is no rotation named."""
-    try:
-        return transforms.from_xyz_quats_xyzw(xyz, quat_xyzw)
-    except ValueError:
-        norms = np.linalg.norm(quat_xyzw, axis=1)
-        k = int(np.argmax(~(np.isfinite(norms) & (norms >= 1e-9))))
+    bad, norms = transforms.unusable_quaternions(quat_xyzw)
+    if bad.any():
+        k = int(np.argmax(bad))
         raise _line_error(path, lines, numbers[k],
-                          f"quaternion {quat_xyzw[k].tolist()} is not a rotation (norm {norms[k]})") from None
+                          f"quaternion {quat_xyzw[k].tolist()} is not a rotation (norm {norms[k]})")
+    return transforms.from_xyz_quats_xyzw(xyz, quat_xyzw)
 
 
 def _information(path: Path, lines: list[str], numbers: list[int], upper: np.ndarray,
