@@ -115,10 +115,11 @@ def _to_gtsam(T: np.ndarray, planar: bool):
 
 
 def gtsam_information(information: np.ndarray, planar: bool) -> np.ndarray:
-    """Our 6x6 information (x, y, z, roll, pitch, yaw) in gtsam's tangent order (3x3 or 6x6)."""
+    """Our 6x6 information (x, y, z, roll, pitch, yaw) in gtsam's tangent order (3x3 or 6x6),
+    symmetrised; a stack (n, 6, 6) gives (n, 3, 3) or (n, 6, 6)."""
     order = POSE2_FROM_OURS if planar else POSE3_FROM_OURS
-    info = np.asarray(information, dtype=np.float64)[np.ix_(order, order)]
-    return 0.5 * (info + info.T)
+    info = np.asarray(information, dtype=np.float64)[..., order, :][..., :, order]
+    return 0.5 * (info + np.swapaxes(info, -1, -2))
 
 
 class InformationCheck(NamedTuple):
@@ -181,9 +182,7 @@ def _checked_information(links: list[Link], planar: bool) -> tuple[np.ndarray, n
     with np.errstate(invalid="ignore"):
         finite = np.isfinite(raw).all(axis=(1, 2))
         symmetric = np.abs(raw - raw.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0) <= SYMMETRY_RTOL * scale
-    order = POSE2_FROM_OURS if planar else POSE3_FROM_OURS
-    info = raw[:, order][:, :, order]
-    info = 0.5 * (info + info.transpose(0, 2, 1))
+    info = gtsam_information(raw, planar)
     usable = finite.copy()
     check = information_check(info[finite])
     if check.unusable is not None:
