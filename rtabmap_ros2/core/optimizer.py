@@ -106,12 +106,8 @@ def load_backend() -> None:
 
 
 def _to_gtsam(T: np.ndarray, planar: bool):
-    import gtsam
-
-    if planar:
-        x, y, yaw = transforms.to_xy_yaw(T)
-        return gtsam.Pose2(x, y, yaw)
-    return gtsam.Pose3(np.asarray(T, dtype=np.float64))
+    """gtsam Pose2 or Pose3 of one 4x4 transform (:func:`_gtsam_poses`)."""
+    return _gtsam_poses(np.asarray(T, dtype=np.float64)[None], planar)[0]
 
 
 def gtsam_information(information: np.ndarray, planar: bool) -> np.ndarray:
