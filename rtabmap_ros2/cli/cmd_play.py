@@ -35,6 +35,7 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import logging
+    import os
     import signal
     import threading
 
@@ -42,10 +43,14 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
-    from rtabmap_ros2.ros.play import ACK_TIMEOUT_S, play_bag
+    from rtabmap_ros2.ros.play import ACK_TIMEOUT_S, WRITER_HEARTBEAT_S, play_bag, use_writer_heartbeat_profile
 
     log = logging.getLogger("rtabmap_ros2.play")
     stop = threading.Event()
+    profile = use_writer_heartbeat_profile()
+    if profile is not None:
+        log.info("Fast DDS writers resend lost samples every %g s (profile %s; set FASTRTPS_DEFAULT_PROFILES_FILE "
+                 "to use your own)", WRITER_HEARTBEAT_S, profile)
     rclpy.init(args=["play", "--ros-args", *args.ros_args] if args.ros_args else None,
                signal_handler_options=SignalHandlerOptions.NO)
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -63,4 +68,6 @@ def run(args: argparse.Namespace) -> int:
         rclpy.try_shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        if profile is not None:
+            os.unlink(profile)
     return 0
