@@ -28,7 +28,9 @@ Rules (message time everywhere: stamps, never the wall clock):
   arrivals are inserted in place); the oldest is dropped when full (``dropped["queue_full"]``).
   A pivot message older than the last decided one cannot form a set any more
   (``dropped["late"]``). A silent stream therefore never wedges the synchroniser: its partners'
-  queues just overflow until it comes back.
+  queues just overflow until it comes back. Every drop but ``rate_limited`` (the rate limit's
+  purpose) is also reported to ``on_drop(reason, stream, detail)`` when given: the stream at
+  fault and a sentence saying why (for ``queue_full``, which stream is how far behind).
 * **Time jumps.** A stamp more than one period (at least :data:`MIN_RESET_JUMP_S`) older than the
   newest stamp of the *same* stream means the bag looped or the clock jumped (a message merely
   delivered later than other streams' newer ones is not a jump): every queue and the rate limiter are
@@ -44,7 +46,7 @@ from __future__ import annotations
 import bisect
 import logging
 from dataclasses import dataclass, field
-from typing import Iterable, Optional
+from typing import Callable, Iterable, Optional
 
 from rtabmap_ros2.core.params import SyncParams
 from rtabmap_ros2.errors import ParameterError
@@ -103,7 +105,8 @@ class _Queue:
 class FrameSynchronizer:
     """Group messages of several streams into rate-limited synchronised sets (rules: module doc)."""
 
-    def __init__(self, params: SyncParams, streams: Iterable[str], pivot: Optional[str] = None) -> None:
+    def __init__(self, params: SyncParams, streams: Iterable[str], pivot: Optional[str] = None,
+                 on_drop: Optional[Callable[[str, str, str], None]] = None) -> None:
         """Create a synchroniser for the required ``streams`` (e.g. ``{"rgb", "depth", "odom"}``).
 
         Args:
@@ -111,6 +114,8 @@ class FrameSynchronizer:
             streams: names of the streams every set must contain (at least one).
             pivot: stream whose stamps are the sets' reference stamps; default: the first of
                 :data:`PIVOT_PRIORITY` in ``streams``, else the alphabetically first stream.
+            on_drop: called as ``on_drop(reason, stream, detail)`` for every message dropped
+                (``queue_full``, ``late``, ``unmatched``; module doc).
         """
         self.params = params
         self.streams = frozenset(streams)
@@ -125,6 +130,7 @@ class FrameSynchronizer:
         self._period_ns = int(round(NS_PER_S / params.rate_hz)) if params.rate_hz > 0 else 0
         self._reset_jump_ns = max(self._period_ns, int(MIN_RESET_JUMP_S * NS_PER_S))
         self.dropped: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)
+        self._on_drop = on_drop
         self.resets = 0
         self.emitted = 0
         self._queues = {s: _Queue(params.queue_size) for s in self.streams}
@@ -162,11 +168,31 @@ class FrameSynchronizer:
         if previous is None or stamp_ns > previous:
             self._stream_newest_ns[stream] = stamp_ns
         if stream == self.pivot and self._last_pivot_ns is not None and stamp_ns <= self._last_pivot_ns:
-            self.dropped["late"] += 1
+            self._drop("late", stream, f"{stream} message stamped {stamp_ns / NS_PER_S:.3f} s is not after the "
+                                       f"last one decided ({self._last_pivot_ns / NS_PER_S:.3f} s)")
             return []
         if self._queues[stream].insert(stamp_ns, value):
-            self.dropped["queue_full"] += 1
+            self._drop("queue_full", stream, self._queue_full_detail(stream))
         return self._process(final=False)
+
+    def _drop(self, reason: str, stream: str, detail: str) -> None:
+        self.dropped[reason] += 1
+        if self._on_drop is not None:
+            self._on_drop(reason, stream, detail)
+
+    def _queue_full_detail(self, stream: str) -> str:
+        """Why ``stream``'s queue overflowed: the stream furthest behind and by how much."""
+        newest = self._stream_newest_ns
+        text = (f"{stream} queue full ({self.params.queue_size} messages): its oldest message was dropped "
+                f"while waiting for the other streams")
+        waiting = [s for s in self.streams if s != stream]
+        if not waiting:
+            return text
+        laggard = min(waiting, key=lambda s: newest.get(s, -1))
+        if laggard not in newest:
+            return f"{text}; {laggard} has sent nothing yet"
+        return (f"{text}; {laggard} is {(newest[stream] - newest[laggard]) / NS_PER_S:.2f} s behind "
+                f"(a silent stream, or a reliable topic waiting for a DDS repair)")
 
     def flush(self) -> list[SyncedSet]:
         """End of input: decide the pending sets with the messages at hand and return the emitted ones."""
@@ -196,6 +222,7 @@ class FrameSynchronizer:
             ref_ns = pivot_q.stamps[0]
             matches: dict[str, int] = {}
             undecided = False
+            missing = None
             for s in self.streams:
                 if s == self.pivot:
                     continue
@@ -206,6 +233,7 @@ class FrameSynchronizer:
                     break
                 if j < 0:
                     # A gap in this stream: the pivot message cannot form a set.
+                    missing = s
                     break
                 matches[s] = j
             if undecided:
@@ -213,8 +241,9 @@ class FrameSynchronizer:
             value = pivot_q.values[0]
             pivot_q.drop_before(ref_ns + 1)
             self._last_pivot_ns = ref_ns
-            if len(matches) != len(self.streams) - 1:
-                self.dropped["unmatched"] += 1
+            if missing is not None:
+                self._drop("unmatched", missing, f"no {missing} message within {self._tolerance_ns / NS_PER_S:g} s of the "
+                                                 f"{self.pivot} message stamped {ref_ns / NS_PER_S:.3f} s")
                 continue
             values = {self.pivot: value}
             stamps = {self.pivot: ref_ns}

@@ -276,7 +276,7 @@ class RtabmapNode(Node):
             streams.add("rgb")
         if p.subscribe_depth:
             streams.add("depth")
-        self._sync = FrameSynchronizer(self.params.sync, streams)
+        self._sync = FrameSynchronizer(self.params.sync, streams, on_drop=self._sync_drop)
         self._sync_lock = threading.Lock()
         self._reset_jump_ns = int(max(MIN_RESET_JUMP_S, 1.0 / self.params.sync.rate_hz
                                       if self.params.sync.rate_hz > 0 else 0.0) * NS_PER_S)
@@ -462,6 +462,13 @@ class RtabmapNode(Node):
     def _bad(self, topic: str, reason: str, message: str) -> None:
         """Drop a bad input: logged once per (topic, reason), counted on info."""
         self.dropped.drop(topic, reason, message)
+
+    def _sync_drop(self, reason: str, stream: str, detail: str) -> None:
+        """A message the synchroniser dropped: counted as ``sync_<reason>`` on the stream's topic."""
+        hint = (" If a topic lags by seconds, a lost sample is waiting for its writer's next heartbeat (Fast DDS: "
+                "every 3 s by default): raise sync_queue_size or shorten the publishers' heartbeat (docs/node.md, "
+                "QoS)." if reason == "queue_full" else "")
+        self._bad(self._topics.get(stream, stream), f"sync_{reason}", detail + hint)
 
     def _bad_frame(self, exc: SensorDataError) -> None:
         """Drop a synchronised frame, counted on the topic of the part at fault (``exc.source``)."""

@@ -437,12 +437,16 @@ def test_silent_topics_are_reported_once(context, tmp_path, frames, capfd):
             h.tester.pubs["odom"].publish(conv.odometry_to_msg(np.eye(4), time.time_ns()))
             time.sleep(0.1)
         assert h.node._silence_warned == {"scan", "rgb", "depth", "camera_info"}
+        # The synchroniser's odometry queue overflowed waiting for the others: counted, said once.
+        assert h.node.bad_messages[("/odom", "sync_queue_full")] >= 15
     finally:
         h.close()
     err = capfd.readouterr().err
     warnings = [line for line in err.splitlines() if "no message for" in line]
     assert len(warnings) == 1, err
     assert "/scan" in warnings[0] and "receiving: /odom" in warnings[0]
+    overflow = [line for line in err.splitlines() if "[sync_queue_full]" in line]
+    assert len(overflow) == 1 and "has sent nothing yet" in overflow[0] and "heartbeat" in overflow[0], err
 
 
 # -- across processes ------------------------------------------------------------------------------

@@ -155,3 +155,31 @@ def test_message_delivered_late_relative_to_other_streams_is_not_a_time_jump():
     emitted += sync.flush()
     assert sync.resets == 0
     assert [s.values["scan"] for s in emitted] == [f"scan{k}" for k in range(5)]
+
+
+def test_drops_are_reported_with_the_stream_at_fault():
+    """queue_full names the stream that is behind and by how much; unmatched the stream with the
+    gap; late the pivot; the rate limit's drops are its purpose and are not reported."""
+    reports = []
+    sync = FrameSynchronizer(SyncParams(rate_hz=0, tolerance_s=0.02, queue_size=3), {"rgb", "scan"},
+                             on_drop=lambda *r: reports.append(r))
+    # scan held back (a DDS repair): rgb runs 4 messages ahead of it, then scan catches up.
+    for k in range(5):
+        sync.add("rgb", 10 * S + k * S, k)
+    assert [r[:2] for r in reports] == [("queue_full", "rgb")] * 2
+    assert "scan has sent nothing yet" in reports[0][2]
+    sync.add("scan", 10 * S, "s0")
+    reports.clear()
+    sync.add("rgb", 15 * S, 5)
+    assert reports[0][:2] == ("queue_full", "rgb") and "scan is 5.00 s behind" in reports[0][2]
+    reports.clear()
+    sync.add("scan", 13 * S + 500 * MS, "s")   # rgb 13 s (12 s was pushed out): scans 10 s and 13.5 s too far
+    assert [r[:2] for r in reports] == [("unmatched", "scan")]
+    assert "no scan message within 0.02 s of the rgb message stamped 13.000 s" in reports[0][2]
+    assert sync.dropped == {"queue_full": 3, "late": 0, "unmatched": 1, "rate_limited": 0}
+    reports.clear()
+    sync = FrameSynchronizer(SyncParams(rate_hz=1), {"rgb", "scan"}, on_drop=lambda *r: reports.append(r))
+    feed(sync, [("rgb", 10 * S), ("scan", 10 * S), ("rgb", 11 * S), ("scan", 11 * S + 500 * MS),
+                ("rgb", 10 * S + 800 * MS)])
+    assert [r[:2] for r in reports] == [("unmatched", "scan"), ("late", "rgb")]
+    assert "not after the last one decided (11.000 s)" in reports[1][2]
