@@ -25,7 +25,7 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.database import BackgroundWriter, Database, SensorBlobs, WriteBatch
-from rtabmap_ros2.core.graph import Graph, Link, LinkType
+from rtabmap_ros2.core.graph import Graph, Link, LinkType, loop_type
 from rtabmap_ros2.core.node_tables import SessionIds
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.sensor import LaserScan
@@ -183,14 +183,20 @@ class Memory:
         holds the words (issue 32: keeping the newer id with the older image's words made loop
         closures 1-4 images off the ground truth's pairs: 32 of 37 false ones on a 3,000-image run).
 
+        With ``memory.rehearsal_id_updated_to_new_one`` (RTAB-Map's Mem/RehearsalIdUpdatedToNewOne,
+        config/rtabmap.yaml's for SLAM) the merge goes the other way: ``sig`` stays, with its id,
+        odometry pose, scan and stamp, takes L_c's words (L_c's 3D points moved into its frame through
+        their neighbour link), and L_c's links are re-anchored on it; L_c is deleted.
+
         SLAM mode (odometry): when the neighbour link between them shows the camera moved
         (``memory.rehearsal_max_distance`` / ``rehearsal_max_angle``), both locations are kept and
         only the weight moves to ``sig`` (or nothing happens with
         ``rehearsal_weight_ignored_while_moving``), as RTAB-Map does: merging a moving camera's
         locations would drop places the map needs.
 
-        Returns ``(merged, similarity)``: the id of the deleted location (``sig.id``), or 0, and the
-        Eq. 1 similarity with the previous location (0 when not compared).
+        Returns ``(merged, similarity)``: the id of the deleted location (``sig.id``, or L_c's with
+        ``rehearsal_id_updated_to_new_one``), or 0, and the Eq. 1 similarity with the previous location
+        (0 when not compared).
         """
         if sig.bad or len(self.stm) < 2:
             return 0, 0.0
@@ -215,6 +221,8 @@ class Memory:
             for w in fresh:
                 self._batch.words.pop(w, None)
             self.words_added -= len(fresh)
+        if params.rehearsal_id_updated_to_new_one:
+            return self._merge_into_new(sig, prev, neighbor), value
         prev.weight += sig.weight + 1
         self._batch.weights[prev.id] = prev.weight
         self.on_graph_change(sig.id)
@@ -227,6 +235,44 @@ class Memory:
         self._new_locations.pop(sig.id, None)
         self._batch.deleted_locations.append(sig.id)
         return sig.id, value
+
+    def _merge_into_new(self, sig: Signature, prev: Signature, neighbor: Optional[Link]) -> int:
+        """Rehearsal at ``rehearsal_id_updated_to_new_one``: ``prev`` merged into ``sig`` (see
+        :meth:`rehearse`); ``sig``'s own new words have already left the vocabulary. Returns ``prev.id``."""
+        # sig -> prev from the stored neighbour link (scan-refined when it was), not raw odometry:
+        # prev's links are re-anchored on sig through it (issue 14 item 5).
+        T_t_c = transforms.identity()
+        if neighbor is not None:
+            T_t_c = transforms.inverse(neighbor.T_from_to)
+        elif sig.T_odom_base is not None and prev.T_odom_base is not None:
+            T_t_c = transforms.relative(sig.T_odom_base, prev.T_odom_base)
+        sig.word_ids = prev.word_ids
+        sig.keypoints = prev.keypoints
+        sig.points3d = _transform_points(T_t_c, prev.points3d)
+        self.vocabulary.add_references(sig.id, sig.word_ids)
+        self.vocabulary.remove_references(prev.id, prev.word_ids)
+        # Weight of L_t increased by L_c's plus one; L_c's links redirected to L_t; L_c deleted.
+        sig.weight += prev.weight + 1
+        self.on_graph_change(prev.id)
+        for link in self.graph.remove_node(prev.id):
+            self._count_session_link(link, -1)
+            self._batch.delete_link(link.from_id, link.to_id)
+            if link.to_id == sig.id:
+                continue
+            kind = (LinkType.NEIGHBOR if link.type is LinkType.NEIGHBOR
+                    else loop_type(sig.map_id, self.map_ids[link.to_id]))
+            information = link.information
+            if neighbor is not None:
+                information = _composed_information(neighbor.information, link.information)
+            self.add_link(Link(sig.id, link.to_id, kind, T_t_c @ link.T_from_to, information))
+        self.stm.remove(prev.id)
+        del self.signatures[prev.id]
+        self.node_count -= 1
+        self._new_locations.pop(prev.id, None)
+        self._batch.deleted_locations.append(prev.id)
+        if self.last_loop_closure_id == prev.id:
+            self.last_loop_closure_id = sig.id
+        return prev.id
 
     def _moved(self, T: np.ndarray) -> bool:
         """True when a neighbour link shows the camera moved (RTAB-Map's rehearsal isMoving)."""
@@ -541,6 +587,19 @@ class Memory:
         self.writer.join()
         self.vocabulary.close()
         self.db.close()
+
+
+def _composed_information(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Information of two links chained: their covariances add (RTAB-Map's Link::merge)."""
+    return np.linalg.inv(np.linalg.inv(a) + np.linalg.inv(b))
+
+
+def _transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N,3) points (NaN rows stay NaN)."""
+    if not len(points):
+        return points
+    out = points.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    return out.astype(np.float32)
 
 
 def _pair(a: int, b: int) -> tuple[int, int]:

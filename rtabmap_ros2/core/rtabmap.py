@@ -281,7 +281,8 @@ class Rtabmap:
         stats.merged_id, stats.rehearsal_similarity = memory.rehearse(sig, new_words)
         if stats.merged_id:
             # Merged into the previous location, which stays (RTAB-Map's rehearsal): this frame is
-            # that location now.
+            # that location now. With memory.rehearsal_id_updated_to_new_one the previous location was
+            # merged into this frame's, which stays.
             self._forget([stats.merged_id])
             sig = memory.last_location()
             stats.location_id = sig.id

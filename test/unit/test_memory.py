@@ -267,6 +267,45 @@ def test_rehearsal_merge_keeps_the_older_node_and_its_links(tmp_path, descriptor
     assert set(memory.db.load_nodes()) == {1, 2}
 
 
+def test_rehearsal_id_updated_to_new_one_keeps_the_newer_location(tmp_path, descriptors):
+    """Mem/RehearsalIdUpdatedToNewOne (SLAM's config/rtabmap.yaml): the older location goes, the
+    newer one keeps its id and takes the older one's words and weight plus one."""
+    memory = make_memory(tmp_path, rehearsal_id_updated_to_new_one=True)
+    view = descriptors()
+    assert add(memory, 1, view) == 0
+    words = len(memory.vocabulary)
+    first_words = memory.signatures[1].word_ids.copy()
+    assert add(memory, 2, view) == 1
+    assert add(memory, 3, view) == 2
+    assert list(memory.signatures) == [3] and memory.stm == [3]
+    assert memory.signatures[3].weight == 2
+    np.testing.assert_array_equal(memory.signatures[3].word_ids, first_words)
+    assert len(memory.vocabulary) == words
+    assert all(memory.vocabulary.references(int(w)) == {3: 1} for w in memory.signatures[3].word_ids[:5])
+    assert 1 not in memory.graph and 2 not in memory.graph
+    stored = memory.db.load_nodes()
+    assert set(stored) == {3} and stored[3].weight == 2
+
+
+def test_rehearsal_id_updated_to_new_one_reanchors_through_the_refined_link(tmp_path, descriptors):
+    """Merging 2 into 3 re-anchors 2's links on 3 through the stored (scan-refined) link 2 -> 3,
+    not through raw odometry: 3 -> 1 = inverse(T_2_3 refined) @ T_2_1; 3 keeps its odometry pose."""
+    memory = make_memory(tmp_path, rehearsal_id_updated_to_new_one=True)
+    view = descriptors()
+    add_moving(memory, 1, descriptors(), transforms.from_xy_yaw(0.0, 0.0, 0.0))
+    add_moving(memory, 2, view, transforms.from_xy_yaw(1.0, 0.0, 0.0), T_link=transforms.from_xy_yaw(0.9, 0.1, 0.05))
+    refined = transforms.from_xy_yaw(0.02, -0.01, 0.02)  # odometry says 0.04 m, 0 rad
+    assert add_moving(memory, 3, view, transforms.from_xy_yaw(1.04, 0.0, 0.0), T_link=refined) == 2
+    assert set(memory.signatures) == {1, 3} and memory.stm == [1, 3]
+    T_3_1 = memory.graph.link(3, 1).T_from_to
+    expected = transforms.inverse(refined) @ transforms.inverse(transforms.from_xy_yaw(0.9, 0.1, 0.05))
+    np.testing.assert_allclose(T_3_1, expected, atol=1e-9)
+    # The two links' uncertainties add up (RTAB-Map's Link::merge).
+    np.testing.assert_allclose(memory.graph.link(3, 1).information, default_information(0.02))
+    np.testing.assert_allclose(memory.signatures[3].T_odom_base, transforms.from_xy_yaw(1.04, 0.0, 0.0))
+    assert set(memory.db.load_nodes()) == {1, 3}
+
+
 def test_transfer_takes_equal_weights_from_the_session_holding_most_of_wm(tmp_path, descriptors):
     """A session being mapped must not drain the older ones out of WM: among equal weights the
     locations go from the session with the most of WM (then the oldest), so each keeps a share."""

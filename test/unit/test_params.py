@@ -53,6 +53,7 @@ def test_one_detector_for_detect_map_and_the_node():
     ("VhEp/RansacParam2", "0.95", "bayes", "epipolar_confidence", 0.95),
     ("Bayes/VirtualPlacePriorThr", "0.8", "bayes", "virtual_place_prior", 0.8),
     ("Mem/RehearsalWeightIgnoredWhileMoving", "true", "memory", "rehearsal_weight_ignored_while_moving", True),
+    ("Mem/RehearsalIdUpdatedToNewOne", "true", "memory", "rehearsal_id_updated_to_new_one", True),
     ("Mem/RehearsalMaxDistance", "0.1", "memory", "rehearsal_max_distance", 0.1),
     ("Mem/RehearsalMaxAngle", "0.2", "memory", "rehearsal_max_angle", 0.2),
     ("Mem/RecentWmRatio", 0.3, "memory", "recent_wm_ratio", 0.3),
