@@ -35,8 +35,10 @@ Parameters
     RTAB-Map's names (``-p Mem/STMSize:=10``); ``Mem/IncrementalMemory:=false`` starts in localization.
 
 Threads: sensor callbacks (one mutually exclusive group) convert each message and feed the one
-:class:`~rtabmap_ros2.core.sync.FrameSynchronizer`; a completed set becomes a ``SensorFrame`` put
-in a queue of :data:`FRAME_QUEUE_SIZE` frames (when it is full the oldest is dropped, counted in
+:class:`~rtabmap_ros2.core.sync.FrameSynchronizer` (a message it drops, e.g. when one stream lags
+seconds behind the others waiting for a DDS repair, is counted on ``info`` as
+``node_dropped:<topic>:sync_<reason>`` and the first of each logged); a completed set becomes a
+``SensorFrame`` put in a queue of :data:`FRAME_QUEUE_SIZE` frames (when it is full the oldest is dropped, counted in
 ``frames_dropped`` and on ``info``, and the first drop is logged with the reason). The synchroniser already keeps one set per detection period, so the queue only
 absorbs sets that arrive together (a reliable transport repairing a lost sample releases the sets
 held behind it at once) instead of dropping all but the newest. One worker thread
