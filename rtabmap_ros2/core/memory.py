@@ -225,16 +225,23 @@ class Memory:
             return self._merge_into_new(sig, prev, neighbor), value
         prev.weight += sig.weight + 1
         self._batch.weights[prev.id] = prev.weight
-        self.on_graph_change(sig.id)
-        for link in self.graph.remove_node(sig.id):
+        self._delete_stm_location(sig.id)
+        return sig.id, value
+
+    def _delete_stm_location(self, node: int) -> list[Link]:
+        """Rehearsal's deletion of an STM location merged into another: it leaves the graph (its
+        links deleted), STM and the database's pending writes. Returns its links, oriented from it."""
+        self.on_graph_change(node)
+        links = self.graph.remove_node(node)
+        for link in links:
             self._count_session_link(link, -1)
             self._batch.delete_link(link.from_id, link.to_id)
-        self.stm.remove(sig.id)
-        del self.signatures[sig.id]
+        self.stm.remove(node)
+        del self.signatures[node]
         self.node_count -= 1
-        self._new_locations.pop(sig.id, None)
-        self._batch.deleted_locations.append(sig.id)
-        return sig.id, value
+        self._new_locations.pop(node, None)
+        self._batch.deleted_locations.append(node)
+        return links
 
     def _merge_into_new(self, sig: Signature, prev: Signature, neighbor: Optional[Link]) -> int:
         """Rehearsal at ``rehearsal_id_updated_to_new_one``: ``prev`` merged into ``sig`` (see
@@ -253,10 +260,7 @@ class Memory:
         self.vocabulary.remove_references(prev.id, prev.word_ids)
         # Weight of L_t increased by L_c's plus one; L_c's links redirected to L_t; L_c deleted.
         sig.weight += prev.weight + 1
-        self.on_graph_change(prev.id)
-        for link in self.graph.remove_node(prev.id):
-            self._count_session_link(link, -1)
-            self._batch.delete_link(link.from_id, link.to_id)
+        for link in self._delete_stm_location(prev.id):
             if link.to_id == sig.id:
                 continue
             kind = (LinkType.NEIGHBOR if link.type is LinkType.NEIGHBOR
@@ -265,11 +269,6 @@ class Memory:
             if neighbor is not None:
                 information = _composed_information(neighbor.information, link.information)
             self.add_link(Link(sig.id, link.to_id, kind, T_t_c @ link.T_from_to, information))
-        self.stm.remove(prev.id)
-        del self.signatures[prev.id]
-        self.node_count -= 1
-        self._new_locations.pop(prev.id, None)
-        self._batch.deleted_locations.append(prev.id)
         if self.last_loop_closure_id == prev.id:
             self.last_loop_closure_id = sig.id
         return prev.id
