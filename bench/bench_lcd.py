@@ -71,6 +71,8 @@ ABLATION = {
     "approximate search": APPROXIMATE,
     "approximate search, evidence 1": APPROXIMATE + ("--set", "bayes.min_evidence_ratio=1"),
     "+ epipolar, coverage 0.1": ("--set", "VhEp/Enabled=true", "--set", "bayes.epipolar_min_coverage=0.1"),
+    "loop threshold 0.2": ("--set", "Rtabmap/LoopThr=0.2"),
+    "loop threshold 0.3": ("--set", "Rtabmap/LoopThr=0.3"),
     "virtual place prior 0.95": ("--set", "Bayes/VirtualPlacePriorThr=0.95"),
     "rehearsal similarity 0.7": ("--set", "Mem/RehearsalSimilarity=0.7"),
 }

@@ -185,10 +185,8 @@ class FrameSynchronizer:
         newest = self._stream_newest_ns
         text = (f"{stream} queue full ({self.params.queue_size} messages): its oldest message was dropped "
                 f"while waiting for the other streams")
-        waiting = [s for s in self.streams if s != stream]
-        if not waiting:
-            return text
-        laggard = min(waiting, key=lambda s: newest.get(s, -1))
+        # A queue fills only while another stream holds the pivot back: there is one to name.
+        laggard = min((s for s in self.streams if s != stream), key=lambda s: newest.get(s, -1))
         if laggard not in newest:
             return f"{text}; {laggard} has sent nothing yet"
         return (f"{text}; {laggard} is {(newest[stream] - newest[laggard]) / NS_PER_S:.2f} s behind "
