@@ -166,7 +166,6 @@ def test_play_command_line(ros_env, context, bag, receiver):
     assert bad.returncode == 2 and "error:" in bad.stderr and "does not exist" in bad.stderr
 
 
-
 @pytest.fixture(scope="module")
 def raw_session(tmp_path_factory):
     """The simulator's small session with raw 640x480 RGB-D images (47 frames at 1 Hz)."""
