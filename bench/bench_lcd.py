@@ -67,6 +67,7 @@ ABLATION = {
     "no likelihood trim": ("--set", "bayes.likelihood_trim=0"),
     "no evidence check": ("--set", "bayes.min_evidence_ratio=0"),
     "no hypothesis refinement": ("--set", "bayes.refine_hops=0"),
+    "no repeated evidence discount": ("--set", "bayes.discount_repeated_evidence=false"),
     "evidence ratio 1": ("--set", "bayes.min_evidence_ratio=1"),
     "approximate search": APPROXIMATE,
     "approximate search, evidence 1": APPROXIMATE + ("--set", "bayes.min_evidence_ratio=1"),

@@ -89,6 +89,34 @@ def likelihood(scores: dict[int, float], trim: float = 0.0) -> dict[int, float]:
     return out
 
 
+def discounted(observation: dict[int, float], weight: float) -> dict[int, float]:
+    """The likelihood of a frame that repeats the previous one, counted as ``weight`` of an observation.
+
+    Not in RTAB-Map (``bayes.discount_repeated_evidence``). Eq. 2 multiplies the belief by every
+    frame's likelihood as if each were independent evidence; a camera standing still, or creeping,
+    sends the same image again and again, and a weak chance match on it (an aliased texture, a
+    poster) compounds frame after frame until it passes T_loop (runs of 5-10 false loop closures on
+    sim/sequence.py stops, bench/bench_lcd.py --ablation). With ``weight`` = 1 - s, s the frame's
+    rehearsal similarity (Eq. 1) with the previous one, only the new information of the frame
+    counts: every location's likelihood becomes ``v ** weight``, and the new location's is tempered
+    the same way relative to :data:`NO_STANDOUT_NEW_LIKELIHOOD`, the value of an image that favours
+    no place (``2 (v / 2) ** weight``), so that a repeated frame leans towards "no information", not
+    towards a loop closure.
+
+    Args:
+        observation: likelihood per location and for :data:`NEW_LOCATION` (see :func:`likelihood`).
+        weight: in [0, 1]; 1 returns ``observation`` itself.
+    """
+    if weight >= 1.0:
+        return observation
+    weight = max(weight, 0.0)
+    out = {loc: v ** weight for loc, v in observation.items()}
+    if NEW_LOCATION in observation:
+        new = NO_STANDOUT_NEW_LIKELIHOOD
+        out[NEW_LOCATION] = new * (observation[NEW_LOCATION] / new) ** weight
+    return out
+
+
 class TransitionModel:
     """Cached Gaussian neighbourhoods of the transition model p(S_t = i | S_t-1 = j) (§III-C, 4)."""
 
@@ -214,17 +242,20 @@ class BayesFilter:
             belief[1:] += np.bincount(pos, weights=spread, minlength=n)
         return belief
 
-    def update(self, wm_ids: np.ndarray, observation: dict[int, float]) -> dict[int, float]:
+    def update(self, wm_ids: np.ndarray, observation: dict[int, float], weight: float = 1.0) -> dict[int, float]:
         """One filter step: predict, weight by the likelihood, normalise (Eq. 2).
 
         Args:
             wm_ids: (N,) int64 sorted ids of the WM locations that are hypotheses.
             observation: likelihood per id and for :data:`NEW_LOCATION` (see :func:`likelihood`).
+            weight: how much of a new observation the frame is (see :func:`discounted`); the
+                hypothesis refinement and the evidence check read ``observation`` itself.
         """
         belief = self.predict(wm_ids)
+        counted = discounted(observation, weight)
         like = np.empty(len(wm_ids) + 1)
-        like[0] = observation.get(NEW_LOCATION, 1.0)
-        like[1:] = [observation.get(int(i), 1.0) for i in wm_ids]
+        like[0] = counted.get(NEW_LOCATION, 1.0)
+        like[1:] = [counted.get(int(i), 1.0) for i in wm_ids]
         post = belief * like
         total = post.sum()
         post = post / total if total > _EPSILON else np.eye(1, len(post)).ravel()

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rtabmap_ros2.core.bayes import NEW_LOCATION, BayesFilter, TransitionModel, likelihood
+from rtabmap_ros2.core.bayes import NEW_LOCATION, NO_STANDOUT_NEW_LIKELIHOOD, BayesFilter, TransitionModel, discounted, likelihood
 from rtabmap_ros2.core.graph import Graph, Link, LinkType
 from rtabmap_ros2.core.params import BayesParams
 
@@ -83,6 +83,52 @@ def test_uninformative_observations_with_spikes_stay_below_t_loop(trim):
     # (Before issue 32: median 0.14, 90th percentile 0.18, over T_loop.)
     assert np.median(settled) < 0.1
     assert settled.max() < 0.11
+
+
+def test_discounted_likelihood_leans_towards_no_information():
+    observation = {1: 4.0, 2: 1.0, NEW_LOCATION: 8.0}
+    assert discounted(observation, 1.0) is observation
+    half = discounted(observation, 0.5)
+    assert half[1] == pytest.approx(2.0) and half[2] == 1.0
+    assert half[NEW_LOCATION] == pytest.approx(NO_STANDOUT_NEW_LIKELIHOOD * 2.0)  # 2 (8 / 2) ** 0.5
+    nothing = discounted(observation, 0.0)  # a frame identical to the previous one: no information
+    assert nothing == {1: 1.0, 2: 1.0, NEW_LOCATION: NO_STANDOUT_NEW_LIKELIHOOD}
+
+
+def _stop_in_front_of(location: int, weight: float, frames: int = 10) -> list[float]:
+    """A camera standing still in front of a place that resembles ``location``: every frame the same
+    chance scores plus the same match, each counted as ``weight`` of an observation."""
+    rng = np.random.default_rng(5)
+    ids = np.arange(1, 201)
+    bayes = BayesFilter(BayesParams(loop_threshold=0.11), chain(ids.tolist()))
+    scores = {int(i): 0.0 for i in ids}
+    for i in rng.choice(ids, 40, replace=False):
+        scores[int(i)] = float(rng.uniform(0.005, 0.03))
+    scores[location] = 0.3
+    values = []
+    for _ in range(frames):
+        bayes.update(ids, likelihood(scores, 0.5), weight)
+        values.append(bayes.highest().probability)
+    return values
+
+
+def test_repeated_frames_of_a_stopped_camera_do_not_compound_into_a_loop_closure():
+    """bayes.discount_repeated_evidence: ten frames of a stopped camera (rehearsal similarity 0.7
+    with the previous frame: weight 0.3) repeat one weak match; counted as ten observations it
+    passes T_loop (the runs of false loop closures at sim/sequence.py's stops), counted as 0.3 each
+    it stays at the no-information level."""
+    independent = _stop_in_front_of(100, 1.0)
+    assert max(independent) > 0.11  # T_loop
+    discounted_values = _stop_in_front_of(100, 0.3)
+    assert max(discounted_values) < 0.11  # T_loop
+    # A frame that shares nothing with the previous one (weight 1) is a whole observation, as in RTAB-Map.
+    ids = np.arange(1, 31)
+    scores = {int(i): 0.05 for i in ids}
+    scores[12] = 0.6
+    plain, weighted = BayesFilter(BayesParams(), chain(ids.tolist())), BayesFilter(BayesParams(), chain(ids.tolist()))
+    plain.update(ids, likelihood(scores))
+    weighted.update(ids, likelihood(scores), 1.0)
+    assert weighted.posterior == plain.posterior
 
 
 def test_prediction_from_new_location_uses_the_0_9_0_1_transitions():
