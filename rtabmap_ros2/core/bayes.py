@@ -89,7 +89,7 @@ def likelihood(scores: dict[int, float], trim: float = 0.0) -> dict[int, float]:
     return out
 
 
-def discounted(observation: dict[int, float], weight: float) -> dict[int, float]:
+def discounted(like: np.ndarray, weight: float) -> np.ndarray:
     """The likelihood of a frame that repeats the previous one, counted as ``weight`` of an observation.
 
     Not in RTAB-Map (``bayes.discount_repeated_evidence``). Eq. 2 multiplies the belief by every
@@ -104,16 +104,16 @@ def discounted(observation: dict[int, float], weight: float) -> dict[int, float]
     towards a loop closure.
 
     Args:
-        observation: likelihood per location and for :data:`NEW_LOCATION` (see :func:`likelihood`).
-        weight: in [0, 1]; 1 returns ``observation`` itself.
+        like: (N + 1,) likelihood, the new location's first, then one per hypothesis (the layout of
+            :meth:`BayesFilter.update`).
+        weight: in [0, 1]; 1 returns ``like`` itself.
     """
     if weight >= 1.0:
-        return observation
+        return like
     weight = max(weight, 0.0)
-    out = {loc: v ** weight for loc, v in observation.items()}
-    if NEW_LOCATION in observation:
-        new = NO_STANDOUT_NEW_LIKELIHOOD
-        out[NEW_LOCATION] = new * (observation[NEW_LOCATION] / new) ** weight
+    out = like ** weight
+    new = NO_STANDOUT_NEW_LIKELIHOOD
+    out[0] = new * (like[0] / new) ** weight
     return out
 
 
@@ -252,11 +252,10 @@ class BayesFilter:
                 hypothesis refinement and the evidence check read ``observation`` itself.
         """
         belief = self.predict(wm_ids)
-        counted = discounted(observation, weight)
         like = np.empty(len(wm_ids) + 1)
-        like[0] = counted.get(NEW_LOCATION, 1.0)
-        like[1:] = [counted.get(int(i), 1.0) for i in wm_ids]
-        post = belief * like
+        like[0] = observation.get(NEW_LOCATION, 1.0)
+        like[1:] = [observation.get(int(i), 1.0) for i in wm_ids]
+        post = belief * discounted(like, weight)
         total = post.sum()
         post = post / total if total > _EPSILON else np.eye(1, len(post)).ravel()
         self.posterior = {NEW_LOCATION: float(post[0])}

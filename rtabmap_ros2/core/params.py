@@ -237,8 +237,9 @@ class BayesParams:
         "observation, s its Eq. 1 similarity with the previous frame (core/bayes.py discounted), so that a "
         "camera standing still does not compound one weak match frame after frame. On sim/sequence.py "
         "seeds 7 / 11 / 13 precision 0.884 / 0.974 / 0.886 -> 0.980 / 0.993 / 0.989; on make_sequence "
-        "seeds 31 / 21 / 44 precision 0.973 / 0.970 / 0.968 -> 0.981 / 0.973 / 0.964, recall at 100 % precision 0.031 / 0.035 / 0.020 -> 0.155 / 0.039 / 0.009 and "
-        "recall 0.946 / 0.955 / 0.878 -> 0.788 / 0.743 / 0.629 (a revisit's value climbs slower); "
+        "seeds 31 / 21 / 44 precision 0.973 / 0.970 / 0.968 -> 0.981 / 0.973 / 0.964, recall at "
+        "100 % precision 0.031 / 0.035 / 0.020 -> 0.155 / 0.039 / 0.009 and recall "
+        "0.946 / 0.955 / 0.878 -> 0.788 / 0.743 / 0.629 (a revisit's value climbs slower); "
         "RTAB-Map's 84 images unchanged, SLAM's ATE unchanged (bench/bench_lcd.py, bench/bench_slam.py)")
     loop_ratio: float = _p(
         0.0, "RTAB-Map's Rtabmap/LoopRatio: reject a hypothesis below this ratio of the previous "

@@ -86,13 +86,13 @@ def test_uninformative_observations_with_spikes_stay_below_t_loop(trim):
 
 
 def test_discounted_likelihood_leans_towards_no_information():
-    observation = {1: 4.0, 2: 1.0, NEW_LOCATION: 8.0}
-    assert discounted(observation, 1.0) is observation
-    half = discounted(observation, 0.5)
+    like = np.array([8.0, 4.0, 1.0])  # the new location's, then locations 1 and 2
+    assert discounted(like, 1.0) is like
+    half = discounted(like, 0.5)
     assert half[1] == pytest.approx(2.0) and half[2] == 1.0
-    assert half[NEW_LOCATION] == pytest.approx(NO_STANDOUT_NEW_LIKELIHOOD * 2.0)  # 2 (8 / 2) ** 0.5
-    nothing = discounted(observation, 0.0)  # a frame identical to the previous one: no information
-    assert nothing == {1: 1.0, 2: 1.0, NEW_LOCATION: NO_STANDOUT_NEW_LIKELIHOOD}
+    assert half[0] == pytest.approx(NO_STANDOUT_NEW_LIKELIHOOD * 2.0)  # 2 (8 / 2) ** 0.5
+    nothing = discounted(like, 0.0)  # a frame identical to the previous one: no information
+    assert nothing.tolist() == [NO_STANDOUT_NEW_LIKELIHOOD, 1.0, 1.0]
 
 
 def _stop_in_front_of(location: int, weight: float, frames: int = 10) -> list[float]:
