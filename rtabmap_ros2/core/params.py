@@ -85,7 +85,8 @@ class VocabularyParams:
     index: str = _p(
         "auto",
         "Nearest-neighbour index: flat (exact brute force), ivf (inverted file, incremental add/"
-        "remove), auto (flat until ivf_min_words words, then ivf)",
+        "remove), auto (flat until ivf_min_words words, then ivf), kdtree (RTAB-Map's Kp/NNStrategy 1: FLANN "
+        "randomized kd-trees over binary descriptors' bits, 32 checks, approximate; config/rtabmap_reference.yaml)",
     )
     ivf_min_words: int = _p(
         10000, "auto: switch from the exact flat index to IVF at this size (bench/bench_vocabulary.py: "
@@ -104,7 +105,8 @@ class VocabularyParams:
 
     def __post_init__(self) -> None:
         _check(0.0 < self.nndr <= 1.0, "vocabulary.nndr", self.nndr, "in (0, 1]")
-        _check(self.index in ("auto", "flat", "ivf"), "vocabulary.index", self.index, "auto, flat or ivf")
+        _check(self.index in ("auto", "flat", "ivf", "kdtree"), "vocabulary.index", self.index,
+               "auto, flat, ivf or kdtree")
         _check(self.ivf_min_words >= 1000, "vocabulary.ivf_min_words", self.ivf_min_words, ">= 1000")
         _check(self.ivf_nprobe >= 1, "vocabulary.ivf_nprobe", self.ivf_nprobe, ">= 1")
         _check(self.ivf_swap_frames >= 1, "vocabulary.ivf_swap_frames", self.ivf_swap_frames, ">= 1")
@@ -611,6 +613,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Rtabmap/LoopThr": ("bayes.loop_threshold", float),
     "Bayes/VirtualPlacePriorThr": ("bayes.virtual_place_prior", float),
     "Kp/NndrRatio": ("vocabulary.nndr", float),
+    "Kp/NNStrategy": ("vocabulary.index", lambda v: _NN_STRATEGIES.get(int(v), f"Kp/NNStrategy {v}")),
     "Kp/NewWordsComparedTogether": ("vocabulary.new_words_compared_together",
                                     lambda v: _to_bool("Kp/NewWordsComparedTogether", v)),
     "Kp/TfIdfLikelihoodUsed": ("bayes.likelihood",
@@ -646,6 +649,9 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "approx_sync_max_interval": ("sync.tolerance_s", float),
 }
 
+# Kp/NNStrategy values with an equivalent here (RTAB-Map: 0 linear FLANN and 3-4 brute force, exact;
+# 1 FLANN kd-trees; 2 LSH, not available).
+_NN_STRATEGIES = {0: "flat", 1: "kdtree", 3: "flat", 4: "flat"}
 # Kp/DetectorStrategy values with an equivalent here (RTAB-Map: 2=ORB, 1=SIFT, 8=GFTT/ORB).
 _DETECTOR_STRATEGIES = {2: "orb", 1: "sift", 8: "gftt_orb"}
 

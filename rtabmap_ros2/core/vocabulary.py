@@ -12,6 +12,9 @@ step. Here the index is incremental (``bench/bench_vocabulary.py`` measured the 
 
 * flat: exact brute force (faiss ``knn_hamming`` / ``knn``) over a contiguous numpy buffer of the
   words. Removing a word moves the last row into its slot: O(removed), never a rebuild.
+* kdtree: RTAB-Map's own approximate search (FLANN randomized kd-trees over the descriptors' bits,
+  32 checks: ``core/kdtree.py``), binary descriptors only. Slower and less exact than the others; it
+  is what makes ``config/rtabmap_reference.yaml`` behave as RTAB-Map does (issue 32).
 * IVF: a faiss inverted file (``IndexBinaryIVF`` for ORB, ``IndexIVFFlat`` for SIFT) holding the
   word ids natively, with a hash-table direct map so ``remove_ids`` costs O(removed). Used from
   ``ivf_min_words`` words on (``index=auto``). Its coarse quantiser is trained on the current words
@@ -71,8 +74,9 @@ from typing import Iterable
 import faiss
 import numpy as np
 
+from rtabmap_ros2.core.kdtree import RandomizedKdTrees
 from rtabmap_ros2.core.params import VocabularyParams
-from rtabmap_ros2.errors import SensorDataError
+from rtabmap_ros2.errors import ParameterError, SensorDataError
 
 logger = logging.getLogger(__name__)
 
@@ -299,6 +303,9 @@ class Vocabulary:
         """
         if next_word_id < 1:
             raise ValueError(f"next_word_id={next_word_id} is invalid: word ids start at 1")
+        if params.index == "kdtree" and not binary:
+            raise ParameterError("vocabulary.index=kdtree searches binary descriptors (features.detector "
+                                 "gftt_orb or orb) only; these are float descriptors: use auto, flat or ivf")
         self.params = params
         self.binary = binary
         self.next_word_id = int(next_word_id)
@@ -315,6 +322,12 @@ class Vocabulary:
         self.background_training = bool(background_training)
         self._build: _IvfBuild | None = None  # pending background (re)build
         self._frames = 0  # quantize calls so far: the clock of the IVF swap
+        # index="kdtree" (made with the first words), and the words not indexed yet: as RTAB-Map's
+        # VWDictionary::update at the start of the next frame (Memory::preUpdate), a word is put in
+        # the trees when the next frame searches, in id order, unless it left the vocabulary since
+        # (the words of a location that rehearsal merged never enter the trees).
+        self._kdtree: RandomizedKdTrees | None = None
+        self._kdtree_pending: dict[int, np.ndarray] = {}
         # Inverted index (word -> {location: occurrences}, module docstring): the location of a
         # word of the vocabulary that occurs once in one location is _owner[row] (0: none); any
         # other referenced word has a dict in _shared (never both).
@@ -492,6 +505,10 @@ class Vocabulary:
         self._poll_build()
         if self._ivf is not None:
             _remove_ids(self._ivf, ids)
+        if self.params.index == "kdtree":
+            for word in ids.tolist():
+                if self._kdtree_pending.pop(word, None) is None and self._kdtree is not None:
+                    self._kdtree.remove(np.array([word]))
         if self._build is not None:
             self._build.log.append(("remove", ids, None))
         row_of_removed = dict(zip(ids.tolist(), rows.tolist()))  # kept current as rows move
@@ -726,6 +743,8 @@ class Vocabulary:
         self._ids[start:needed] = ids
         self._row_of.insert(ids, np.arange(start, needed, dtype=np.int64))
         self._count = needed
+        if self.params.index == "kdtree":
+            self._kdtree_pending.update(zip(ids.tolist(), descriptors.copy()))
         if self._ivf is not None:
             with _omp_threads(SEARCH_THREADS):
                 self._ivf.add_with_ids(descriptors, ids)
@@ -735,7 +754,7 @@ class Vocabulary:
 
     def _ivf_threshold(self) -> int | None:
         """Vocabulary size from which the IVF index is used (None: never)."""
-        if self.params.index == "flat":
+        if self.params.index in ("flat", "kdtree"):
             return None
         if self.params.index == "ivf":
             return IVF_MIN_TRAIN_WORDS
@@ -811,6 +830,14 @@ class Vocabulary:
 
     def _search(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """2-NN distances (N,2) and word ids (N,2) (-1 where not found)."""
+        if self.params.index == "kdtree":
+            if self._kdtree is None:
+                self._kdtree = RandomizedKdTrees(self._dim)
+            if self._kdtree_pending:
+                ids = sorted(self._kdtree_pending)
+                self._kdtree.add(np.stack([self._kdtree_pending[i] for i in ids]), np.asarray(ids, np.int64))
+                self._kdtree_pending.clear()
+            return self._kdtree.search(descriptors)
         if self._ivf is not None:
             with _omp_threads(SEARCH_THREADS):
                 distances, ids = self._ivf.search(descriptors, NEAREST_NEIGHBOURS)

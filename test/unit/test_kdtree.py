@@ -1,0 +1,120 @@
+"""RTAB-Map's approximate word search (core/kdtree.py: FLANN randomized kd-trees over bits)."""
+
+from __future__ import annotations
+
+import faiss
+import numpy as np
+import pytest
+
+from rtabmap_ros2.core.kdtree import RandomizedKdTrees
+from rtabmap_ros2.core.params import Params, VocabularyParams
+from rtabmap_ros2.core.vocabulary import Vocabulary
+from rtabmap_ros2.errors import ParameterError
+
+from test_vocabulary import flip_bits, random_binary
+
+
+def _exact(queries: np.ndarray, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return faiss.knn_hamming(queries, words, 2)
+
+
+def test_near_copies_find_their_word_with_true_distances(rng):
+    """A view of a word with a few bits flipped (what a revisit gives) finds that word, at its
+    true Hamming distance, whether the word was in the first build or inserted since."""
+    words = random_binary(rng, 3000)
+    trees = RandomizedKdTrees(32)
+    trees.add(words[:1000], np.arange(1, 1001))  # built at once
+    trees.add(words[1000:1500], np.arange(1001, 1501))  # inserted into the trees (below 2x)
+    assert trees._size_at_build == 1000
+    trees.add(words[1500:], np.arange(1501, 3001))  # crosses 2x: rebuilt
+    assert trees._size_at_build > 2000
+    queries = flip_bits(rng, words[::7], 8)
+    distances, ids = trees.search(queries)
+    expected = np.arange(1, 3001)[::7]
+    assert np.mean(ids[:, 0] == expected) > 0.95
+    true = np.array([bin(int.from_bytes((q ^ words[i - 1]).tobytes(), "little")).count("1")
+                     for q, i in zip(queries, ids[:, 0])])
+    np.testing.assert_array_equal(distances[:, 0], true)
+    assert (distances[:, 0] <= distances[:, 1]).all()
+
+
+def test_search_is_approximate_as_flann_with_32_checks(rng):
+    """Unlike the exact index, a query far from every word checks only ~32 of 20,000 words: it
+    misses the true nearest word most of the time (the reason RTAB-Map's vocabulary is larger),
+    and never reports a distance below the true one."""
+    words = random_binary(rng, 20000)
+    trees = RandomizedKdTrees(32)
+    trees.add(words, np.arange(20000))
+    queries = random_binary(rng, 200)
+    distances, ids = trees.search(queries)
+    exact_distances, exact_ids = _exact(queries, words)
+    assert (distances[:, 0] >= exact_distances[:, 0]).all()
+    assert np.mean(ids[:, 0] == exact_ids[:, 0]) < 0.5
+    assert np.isfinite(distances).all()
+
+
+def test_removed_words_are_never_returned_and_re_added_ids_are_found(rng):
+    words = random_binary(rng, 500)
+    trees = RandomizedKdTrees(32)
+    trees.add(words, np.arange(500))
+    trees.remove(np.arange(0, 500, 2))
+    assert len(trees) == 250
+    _, ids = trees.search(words[:100])
+    assert not np.isin(ids[ids >= 0], np.arange(0, 500, 2)).any()
+    # Word 0 comes back with its id (retrieval from LTM) and another descriptor.
+    moved = flip_bits(rng, words[1:2], 3)
+    trees.add(moved, np.array([0]))
+    distances, ids = trees.search(moved)
+    assert ids[0, 0] == 0 and distances[0, 0] == 0
+
+
+def test_same_seed_same_answers(rng):
+    """Deterministic: the same words in the same order give the same trees and answers."""
+    words = random_binary(rng, 4000)
+    queries = flip_bits(rng, words[::13], 20)
+    answers = []
+    for _ in range(2):
+        trees = RandomizedKdTrees(32, seed=7)
+        for start in range(0, 4000, 400):  # frames of 400 words, rebuilt at each doubling
+            trees.add(words[start:start + 400], np.arange(start, start + 400))
+        answers.append(trees.search(queries))
+    np.testing.assert_array_equal(answers[0][1], answers[1][1])
+    np.testing.assert_array_equal(answers[0][0], answers[1][0])
+
+
+def test_a_single_word_gives_one_neighbour(rng):
+    trees = RandomizedKdTrees(32)
+    distances, ids = trees.search(random_binary(rng, 2))
+    assert (ids == -1).all()
+    trees.add(random_binary(rng, 1), np.array([5]))
+    distances, ids = trees.search(random_binary(rng, 3))
+    assert (ids[:, 0] == 5).all() and (ids[:, 1] == -1).all() and np.isinf(distances[:, 1]).all()
+
+
+def test_vocabulary_with_kdtree_quantises_a_revisit_into_its_words(rng):
+    """vocabulary.index=kdtree (Kp/NNStrategy 1): an image seen again, a few bits changed, maps
+    mostly to its words; the few it misses become new words."""
+    vocabulary = Vocabulary(VocabularyParams(index="kdtree"), binary=True)
+    first = random_binary(rng, 400)
+    ids, is_new = vocabulary.quantize(first)
+    assert is_new.all()
+    for _ in range(5):  # other places in between
+        vocabulary.quantize(random_binary(rng, 400))
+    again, is_new = vocabulary.quantize(flip_bits(rng, first, 6))
+    assert np.mean(again == ids) > 0.9
+    assert is_new.sum() < 40
+    vocabulary.remove_words(ids[:100])
+    third, _ = vocabulary.quantize(first[:100])
+    assert not np.isin(third, ids[:100]).any()
+
+
+def test_kdtree_needs_binary_descriptors():
+    with pytest.raises(ParameterError, match="binary descriptors"):
+        Vocabulary(VocabularyParams(index="kdtree"), binary=False)
+
+
+def test_rtabmap_nn_strategy_names_the_index():
+    assert Params().with_value("Kp/NNStrategy", 1).vocabulary.index == "kdtree"
+    assert Params().with_value("Kp/NNStrategy", 3).vocabulary.index == "flat"
+    with pytest.raises(ParameterError, match="Kp/NNStrategy 2"):
+        Params().with_value("Kp/NNStrategy", 2)
