@@ -70,7 +70,6 @@ ABLATION = {
     "no repeated evidence discount": ("--set", "bayes.discount_repeated_evidence=false"),
     "evidence ratio 1": ("--set", "bayes.min_evidence_ratio=1"),
     "approximate search": APPROXIMATE,
-    "kdtree word search": ("--set", "vocabulary.index=kdtree"),
     "approximate search, evidence 1": APPROXIMATE + ("--set", "bayes.min_evidence_ratio=1"),
     "+ epipolar, coverage 0.1": ("--set", "VhEp/Enabled=true", "--set", "bayes.epipolar_min_coverage=0.1"),
     "loop threshold 0.2": ("--set", "Rtabmap/LoopThr=0.2"),
