@@ -506,9 +506,10 @@ class Vocabulary:
         if self._ivf is not None:
             _remove_ids(self._ivf, ids)
         if self.params.index == "kdtree":
-            for word in ids.tolist():
-                if self._kdtree_pending.pop(word, None) is None and self._kdtree is not None:
-                    self._kdtree.remove(np.array([word]))
+            # A word not indexed yet just leaves the pending ones; the others are marked removed.
+            indexed = [word for word in ids.tolist() if self._kdtree_pending.pop(word, None) is None]
+            if indexed and self._kdtree is not None:
+                self._kdtree.remove(np.asarray(indexed, np.int64))
         if self._build is not None:
             self._build.log.append(("remove", ids, None))
         row_of_removed = dict(zip(ids.tolist(), rows.tolist()))  # kept current as rows move
