@@ -376,9 +376,9 @@ class Memory:
         neighbourhoods, as when every link was in RAM."""
         return {node: hop for hop, level in enumerate(self._levels(start, max_hops, types)) for node in level}
 
-    def neighbors(self, node: int) -> list[int]:
-        """Nodes linked to ``node`` (``Graph.neighbors`` over the whole graph)."""
-        return self._adjacent([node], None)
+    def neighbors(self, node: int, types: Optional[tuple[LinkType, ...]] = None) -> list[int]:
+        """Nodes linked to ``node`` by a link of ``types`` (None: all; ``Graph.neighbors`` over the whole graph)."""
+        return self._adjacent([node], types)
 
     def _levels(self, start: int, reach: int, types: Optional[tuple[LinkType, ...]],
                 reached: Optional[set[int]] = None) -> Iterator[list[int]]:

@@ -241,26 +241,48 @@ def test_a_hypothesis_needs_this_frames_evidence_when_asked():
 
 
 def test_refined_hypothesis_follows_a_revisit_faster_than_the_first_pass():
-    """The image shows location 17 now, the belief still peaks on 14 (the previous frames showed it):
-    the posterior's peak lags; refine_hops moves the hypothesis to where this frame's
-    likelihood stands out, within the neighbourhood the transition model reaches."""
+    """The image shows location 17 now (its neighbours 16 and 18 overlap it), the belief still
+    peaks on 14 (the previous frames showed it): the posterior's peak lags; refine_hops moves the
+    hypothesis along the trajectory to where this frame's likelihood, over a location and its two
+    neighbours, is highest."""
     ids = np.arange(1, 61)
-    for refine, expected in ((0, 14), (3, 17)):
+    for refine, expected in ((0, 14), (8, 17)):
         bayes = BayesFilter(BayesParams(refine_hops=refine), chain(ids.tolist()))
         bayes.posterior = {NEW_LOCATION: 0.01, 13: 0.2, 14: 0.6, 15: 0.19}
         scores = {int(i): 0.0 for i in ids}
         scores.update({j: 0.05 for j in (3, 30, 45, 50, 55, 58)})
-        scores.update({14: 0.1, 15: 0.1, 16: 0.1, 17: 0.15})
+        scores.update({14: 0.1, 15: 0.1, 16: 0.12, 17: 0.15, 18: 0.12})
         bayes.update(ids, likelihood(scores, trim=0.5))
         assert bayes.highest().location_id == expected
-    # Nothing there stands out more than the peak: it stays. Beyond the reach: it stays too.
+
+
+def test_refinement_ignores_a_lone_spike_and_other_visits():
+    """One location's likelihood is noisy: a single spike a few hops away, without its
+    neighbours, does not move the hypothesis off a place the image matches over three
+    locations; nor does a place reached only through a loop closure link (another visit), nor
+    one beyond the reach."""
+    ids = np.arange(1, 61)
+    bayes = BayesFilter(BayesParams(refine_hops=8), chain(ids.tolist(), loops=[(10, 40)]))
+    bayes.posterior = {NEW_LOCATION: 0.05, 13: 0.2, 14: 0.55, 15: 0.2}
+    scores = {int(i): 0.0 for i in ids}
+    scores.update({j: 0.01 for j in (3, 5, 7, 9, 50, 52)})
+    scores.update({13: 0.2, 14: 0.22, 15: 0.2, 18: 0.3, 40: 0.5, 41: 0.4, 39: 0.4})
+    bayes.update(ids, likelihood(scores, trim=0.5))
+    assert bayes.observation[18] > bayes.observation[14] and bayes.observation[40] > bayes.observation[18]
+    assert bayes.highest().location_id == 14
+    # The same spike with its neighbours: the image shows 18.
+    scores.update({17: 0.25, 19: 0.25})
+    bayes.posterior = {NEW_LOCATION: 0.05, 13: 0.2, 14: 0.55, 15: 0.2}
+    bayes.update(ids, likelihood(scores, trim=0.5))
+    assert bayes.highest().location_id == 18
+    # Beyond the reach, along the trajectory: it stays.
     bayes = BayesFilter(BayesParams(refine_hops=3), chain(ids.tolist()))
     bayes.posterior = {NEW_LOCATION: 0.05, 14: 0.95}
     far = {int(i): 0.0 for i in ids}
     far.update({j: 0.01 for j in (3, 5, 7, 9)})
-    far[40] = 0.5
+    far.update({19: 0.5, 20: 0.5, 21: 0.5})
     bayes.update(ids, likelihood(far, trim=0.5))
-    assert bayes.observation[40] > 1.0 and bayes.highest().location_id == 14
+    assert bayes.observation[20] > 1.0 and bayes.highest().location_id == 14
 
 
 def test_single_hypothesis_is_never_accepted():
