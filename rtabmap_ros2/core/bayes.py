@@ -286,10 +286,10 @@ class BayesFilter:
     def _best_observed_near(self, location_id: int) -> int:
         """The hypothesis at most ``refine_hops`` neighbour links from ``location_id`` (along the
         trajectory the peak is on, not through loop closures to other visits) whose last
-        likelihood, summed with its trajectory neighbours', is highest (``location_id`` itself on
-        ties).
+        likelihood, summed over the locations within ``refine_window`` neighbour links of it, is
+        highest (``location_id`` itself on ties).
 
-        The sum over a location and its neighbours on either side: consecutive locations see
+        The sum over a location and its neighbours on either side: consecutive images see
         overlapping parts of a place, and the likelihood of one of them alone is noisy at that
         scale (two locations a few images apart often score within 5 % of each other); the
         window locates the image along the trajectory (make_sequence's ground truth, 0.3 image
@@ -300,20 +300,30 @@ class BayesFilter:
         kept = self.transitions.kept
 
         def window(node: int) -> float:
-            return obs.get(node, 1.0) + sum(obs.get(n, 1.0) for n in self._graph.neighbors(node, TRAJECTORY))
+            return sum(obs.get(n, 1.0) for level in self._trajectory_levels(node, self.params.refine_window)
+                       for n in level)
 
         best, best_score = location_id, window(location_id)
-        reached, frontier = {location_id}, [location_id]
-        for _ in range(self.params.refine_hops):
-            frontier = [n for node in frontier for n in self._graph.neighbors(node, TRAJECTORY)
-                        if n not in reached and (kept is None or kept(n))]
-            reached.update(frontier)
-            for node in frontier:
+        for level in self._trajectory_levels(location_id, self.params.refine_hops, kept):
+            for node in level:
                 if node in self.posterior:
                     score = window(node)
                     if score > best_score:
                         best, best_score = node, score
         return best
+
+    def _trajectory_levels(self, start: int, hops: int, kept: Optional[Callable[[int], bool]] = None):
+        """Breadth-first levels of the nodes ``0..hops`` neighbour links from ``start`` (itself
+        first), through nodes ``kept`` accepts (all when None)."""
+        reached, level = {start}, [start]
+        yield level
+        for _ in range(hops):
+            level = [n for node in level for n in self._graph.neighbors(node, TRAJECTORY)
+                     if n not in reached and (kept is None or kept(n))]
+            if not level:
+                return
+            reached.update(level)
+            yield level
 
     def supported_by_observation(self, location_id: int) -> bool:
         """Not in RTAB-Map (``bayes.min_evidence_ratio``, 0 = off): the last update's likelihood of

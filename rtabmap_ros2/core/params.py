@@ -225,14 +225,19 @@ class BayesParams:
         "level (core/bayes.py likelihood)", "ratio")
     refine_hops: int = _p(
         8, "Not in RTAB-Map (0 = off): the highest hypothesis is the location at most this many neighbour links "
-        "from the posterior's peak, along its trajectory, where this frame's likelihood summed over the location "
-        "and its two trajectory neighbours is highest: the peak lags behind a revisit faster than the first pass, "
-        "and one location's likelihood is noisy at the scale of a few images. 8: the transition model's reach "
-        "(bayes.sigma 1.6). Against the peak's own 3 hops on single likelihoods (the default before): recall at "
-        "100 % precision 0.155 / 0.039 -> 0.378 / 0.256 on make_sequence seeds 31 / 21, 0.676 / 0.441 -> "
-        "0.833 / 0.858 on sim/sequence.py seeds 7 / 13, precision up on all six, RTAB-Map's 84 images "
-        "unchanged; through loop closure links too it put one of those images on a wrong place "
-        "(bench/bench_lcd.py)", "hops")
+        "from the posterior's peak, along its trajectory, where this frame's likelihood (over bayes.refine_window) "
+        "is highest: the peak lags behind a revisit faster than the first pass. 8: the transition model's reach "
+        "(bayes.sigma 1.6); through loop closure links too it put one of RTAB-Map's 84 real images on a wrong "
+        "place (bench/bench_lcd.py)", "hops")
+    refine_window: int = _p(
+        1, "Not in RTAB-Map: the hypothesis refinement sums a candidate's likelihood with its trajectory "
+        "neighbours' up to this many links on either side (0: its own alone). In an image sequence consecutive "
+        "images overlap and one location's likelihood is noisy at that scale: against the peak's 3 hops on single "
+        "likelihoods (the default before), recall at 100 % precision 0.155 / 0.039 -> 0.356 / 0.254 on "
+        "make_sequence seeds 31 / 21, precision up on every set (bench/bench_lcd.py). config/rtabmap.yaml: 0. "
+        "SLAM nodes are a second apart and a turning camera's neighbours do not overlap: with 1, sessions 4-5 of "
+        "bench_slam.py's seed 5 never merged (the window chose nodes sharing too few words for RANSAC)",
+        "links")
     min_evidence_ratio: float = _p(
         0.5, "Not in RTAB-Map (0 = off): a hypothesis reaching T_loop is accepted only when this frame's "
         "likelihood of it, or of a graph neighbour, is at least this ratio of the new location's: the "
@@ -287,6 +292,7 @@ class BayesParams:
         _check(0.0 <= self.likelihood_trim < 1.0, "bayes.likelihood_trim", self.likelihood_trim, "in [0, 1)")
         _check(self.min_evidence_ratio >= 0.0, "bayes.min_evidence_ratio", self.min_evidence_ratio, ">= 0")
         _check(self.refine_hops >= 0, "bayes.refine_hops", self.refine_hops, ">= 0")
+        _check(self.refine_window >= 0, "bayes.refine_window", self.refine_window, ">= 0")
         _check(self.epipolar_min_matches >= 8, "bayes.epipolar_min_matches", self.epipolar_min_matches,
                ">= 8 (a fundamental matrix needs 8 pairs)")
         _check(self.epipolar_max_distance > 0.0, "bayes.epipolar_max_distance", self.epipolar_max_distance, "> 0")

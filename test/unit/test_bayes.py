@@ -270,6 +270,11 @@ def test_refinement_ignores_a_lone_spike_and_other_visits():
     bayes.update(ids, likelihood(scores, trim=0.5))
     assert bayes.observation[18] > bayes.observation[14] and bayes.observation[40] > bayes.observation[18]
     assert bayes.highest().location_id == 14
+    # Without the window (refine_window 0, SLAM's) the spike's own likelihood wins.
+    single = BayesFilter(BayesParams(refine_hops=8, refine_window=0), chain(ids.tolist(), loops=[(10, 40)]))
+    single.posterior = {NEW_LOCATION: 0.05, 13: 0.2, 14: 0.55, 15: 0.2}
+    single.update(ids, likelihood(scores, trim=0.5))
+    assert single.highest().location_id == 18
     # The same spike with its neighbours: the image shows 18.
     scores.update({17: 0.25, 19: 0.25})
     bayes.posterior = {NEW_LOCATION: 0.05, 13: 0.2, 14: 0.55, 15: 0.2}
