@@ -232,12 +232,13 @@ class BayesParams:
     refine_window: int = _p(
         1, "Not in RTAB-Map: the hypothesis refinement sums a candidate's likelihood with its trajectory "
         "neighbours' up to this many links on either side (0: its own alone). In an image sequence consecutive "
-        "images overlap and one location's likelihood is noisy at that scale: against the peak's 3 hops on single "
-        "likelihoods (the default before), recall at 100 % precision 0.155 / 0.039 -> 0.356 / 0.254 on "
-        "make_sequence seeds 31 / 21, precision up on every set (bench/bench_lcd.py). config/rtabmap.yaml: 0. "
-        "SLAM nodes are a second apart and a turning camera's neighbours do not overlap: with 1, sessions 4-5 of "
-        "bench_slam.py's seed 5 never merged (the window chose nodes sharing too few words for RANSAC)",
-        "links")
+        "images overlap and one location's likelihood is noisy at that scale: against 0, recall at 100 % "
+        "precision 0.160 / 0.031 -> 0.356 / 0.254 on make_sequence seeds 31 / 21 (precision up too) and "
+        "0.823 -> 0.858 on sim/sequence.py seed 13, but 0.924 -> 0.382 on its seed 11 (one image put next to "
+        "the right one) and precision -0.001 to -0.002 on its three seeds (bench/bench_lcd.py). "
+        "config/rtabmap.yaml: 0. SLAM nodes are a second apart and a turning camera's neighbours do not "
+        "overlap: with 1, sessions 4-5 of bench_slam.py's seed 5 never merged (the window chose nodes sharing "
+        "too few words for RANSAC)", "links")
     min_evidence_ratio: float = _p(
         0.5, "Not in RTAB-Map (0 = off): a hypothesis reaching T_loop is accepted only when this frame's "
         "likelihood of it, or of a graph neighbour, is at least this ratio of the new location's: the "
@@ -247,10 +248,10 @@ class BayesParams:
         True, "Not in RTAB-Map (false = off): a frame's likelihood counts in the filter as 1 - s of an "
         "observation, s its Eq. 1 similarity with the previous frame (core/bayes.py discounted), so that a "
         "camera standing still does not compound one weak match frame after frame. On sim/sequence.py "
-        "seeds 7 / 11 / 13 precision 0.884 / 0.974 / 0.886 -> 0.980 / 0.993 / 0.989; on make_sequence "
-        "seeds 31 / 21 / 44 precision 0.973 / 0.970 / 0.968 -> 0.981 / 0.973 / 0.964, recall at "
-        "100 % precision 0.031 / 0.035 / 0.020 -> 0.155 / 0.039 / 0.009 and recall "
-        "0.946 / 0.955 / 0.878 -> 0.788 / 0.743 / 0.629 (a revisit's value climbs slower); "
+        "seeds 7 / 11 / 13 precision 0.886 / 0.972 / 0.889 -> 0.980 / 0.991 / 0.987; on make_sequence "
+        "seeds 31 / 21 / 44 precision 0.979 / 0.974 / 0.962 -> 0.997 / 0.982 / 0.965, recall at "
+        "100 % precision 0.558 / 0.418 / 0.020 -> 0.356 / 0.254 / 0.009 and recall "
+        "0.952 / 0.958 / 0.872 -> 0.803 / 0.751 / 0.634 (a revisit's value climbs slower); "
         "RTAB-Map's 84 images unchanged, SLAM's ATE unchanged (bench/bench_lcd.py, bench/bench_slam.py)")
     loop_ratio: float = _p(
         0.0, "RTAB-Map's Rtabmap/LoopRatio: reject a hypothesis below this ratio of the previous "
