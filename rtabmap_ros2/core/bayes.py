@@ -292,9 +292,10 @@ class BayesFilter:
         The sum over a location and its neighbours on either side: consecutive images see
         overlapping parts of a place, and the likelihood of one of them alone is noisy at that
         scale (two locations a few images apart often score within 5 % of each other); the
-        window locates the image along the trajectory (make_sequence's ground truth, 0.3 image
-        widths: the refinement on single likelihoods put 1 in 60-100 accepted loop closures
-        just outside it, bench/bench_lcd.py).
+        window locates the image along the trajectory (on single likelihoods the first false
+        hypotheses of make_sequence seeds 31 and 21 were 200-300 px past the ground truth's
+        window of 0.3 image widths, bench/bench_lcd.py). It assumes consecutive locations
+        overlap: SLAM's nodes, a second apart, do not (``refine_window`` 0 there).
         """
         obs = self.observation
         kept = self.transitions.kept
