@@ -13,7 +13,7 @@ prediction is a handful of numpy operations per frame rather than an N x N matri
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Container, Optional
 
 import numpy as np
 
@@ -123,13 +123,13 @@ class TransitionModel:
     """Cached Gaussian neighbourhoods of the transition model p(S_t = i | S_t-1 = j) (§III-C, 4)."""
 
     def __init__(self, params: BayesParams, graph: Graph,
-                 kept: Optional[Callable[[int], bool]] = None) -> None:
+                 kept: Optional[Container[int]] = None) -> None:
         """``graph``: anything with ``hops_from`` and ``neighbors`` (a Graph, or the Memory: its
         whole graph, LTM links read from the database); ``kept``: which reached nodes a cached
         neighbourhood keeps (the ones in memory: the others are not hypotheses, and the
         neighbourhoods of a small-world graph would otherwise grow with LTM)."""
         self._graph = graph
-        self.kept = kept
+        self._kept = kept
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         hops = np.arange(params.neighborhood + 1)
         gaussian = np.exp(-0.5 * (hops / params.sigma) ** 2)
@@ -163,8 +163,8 @@ class TransitionModel:
         cached = self._cache.get(node_id)
         if cached is None:
             hops = self._graph.hops_from(node_id, self._radius)
-            if self.kept is not None:
-                hops = {n: d for n, d in hops.items() if self.kept(n)}
+            if self._kept is not None:
+                hops = {n: d for n, d in hops.items() if n in self._kept}
             ids = np.fromiter(hops.keys(), dtype=np.int64, count=len(hops))
             dist = np.fromiter(hops.values(), dtype=np.int64, count=len(hops))
             cached = (ids, self._gaussian[dist])
@@ -175,10 +175,13 @@ class TransitionModel:
 class BayesFilter:
     """The recursive filter; its support follows WM as locations enter and leave it."""
 
-    def __init__(self, params: BayesParams, graph: Graph, kept: Optional[Callable[[int], bool]] = None) -> None:
+    def __init__(self, params: BayesParams, graph: Graph, kept: Optional[Container[int]] = None) -> None:
+        """``kept``: the nodes in memory (see :class:`TransitionModel`); the hypothesis refinement
+        walks through them only."""
         self.params = params
         self.transitions = TransitionModel(params, graph, kept)
         self._graph = graph
+        self._kept = kept
         self.posterior: dict[int, float] = {NEW_LOCATION: 1.0}
         # The last update's likelihood (location id -> value, NEW_LOCATION included).
         self.observation: dict[int, float] = {}
@@ -298,33 +301,18 @@ class BayesFilter:
         overlap: SLAM's nodes, a second apart, do not (``refine_window`` 0 there).
         """
         obs = self.observation
-        kept = self.transitions.kept
 
         def window(node: int) -> float:
-            return sum(obs.get(n, 1.0) for level in self._trajectory_levels(node, self.params.refine_window)
-                       for n in level)
+            return sum(obs.get(n, 1.0) for n in self._graph.hops_from(node, self.params.refine_window, TRAJECTORY))
 
         best, best_score = location_id, window(location_id)
-        for level in self._trajectory_levels(location_id, self.params.refine_hops, kept):
-            for node in level:
-                if node in self.posterior:
-                    score = window(node)
-                    if score > best_score:
-                        best, best_score = node, score
+        # Breadth-first (nearest first on ties), through the nodes in memory only: no LTM read.
+        for node in self._graph.hops_from(location_id, self.params.refine_hops, TRAJECTORY, allowed=self._kept):
+            if node in self.posterior:
+                score = window(node)
+                if score > best_score:
+                    best, best_score = node, score
         return best
-
-    def _trajectory_levels(self, start: int, hops: int, kept: Optional[Callable[[int], bool]] = None):
-        """Breadth-first levels of the nodes ``0..hops`` neighbour links from ``start`` (itself
-        first), through nodes ``kept`` accepts (all when None)."""
-        reached, level = {start}, [start]
-        yield level
-        for _ in range(hops):
-            level = [n for node in level for n in self._graph.neighbors(node, TRAJECTORY)
-                     if n not in reached and (kept is None or kept(n))]
-            if not level:
-                return
-            reached.update(level)
-            yield level
 
     def supported_by_observation(self, location_id: int) -> bool:
         """Not in RTAB-Map (``bayes.min_evidence_ratio``, 0 = off): the last update's likelihood of

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter, deque
-from typing import Callable, Iterable, Iterator, Optional
+from typing import Callable, Container, Iterable, Iterator, Optional
 
 import numpy as np
 
@@ -370,21 +370,23 @@ class Memory:
         collect(self._levels(hypothesis_id, reach, None), time_hops)
         return found[:limit]
 
-    def hops_from(self, start: int, max_hops: int, types: Optional[tuple[LinkType, ...]] = None) -> dict[int, int]:
+    def hops_from(self, start: int, max_hops: int, types: Optional[tuple[LinkType, ...]] = None,
+                  allowed: Optional[Container[int]] = None) -> dict[int, int]:
         """Hop distance to every node within ``max_hops`` of ``start`` over the whole graph, WM
         and LTM (``Graph.hops_from``, LTM links read from the database): the Bayes filter's
-        neighbourhoods, as when every link was in RAM."""
-        return {node: hop for hop, level in enumerate(self._levels(start, max_hops, types)) for node in level}
+        neighbourhoods, as when every link was in RAM. With ``allowed``, only through nodes in it."""
+        return {node: hop for hop, level in enumerate(self._levels(start, max_hops, types, allowed=allowed))
+                for node in level}
 
     def neighbors(self, node: int, types: Optional[tuple[LinkType, ...]] = None) -> list[int]:
         """Nodes linked to ``node`` by a link of ``types`` (None: all; ``Graph.neighbors`` over the whole graph)."""
         return self._adjacent([node], types)
 
     def _levels(self, start: int, reach: int, types: Optional[tuple[LinkType, ...]],
-                reached: Optional[set[int]] = None) -> Iterator[list[int]]:
+                reached: Optional[set[int]] = None, allowed: Optional[Container[int]] = None) -> Iterator[list[int]]:
         """Breadth-first levels from ``start`` (itself first) up to ``reach`` hops over links of
-        ``types`` (None: all), RAM for locations in memory, the database for LTM ones; every node
-        reached goes into ``reached``."""
+        ``types`` (None: all) and nodes in ``allowed`` (None: all), RAM for locations in memory,
+        the database for LTM ones; every node reached goes into ``reached``."""
         reached = set() if reached is None else reached
         reached.add(start)
         level = [start]
@@ -394,7 +396,7 @@ class Memory:
                 return
             following: list[int] = []
             for other in self._adjacent(level, types):
-                if other not in reached:
+                if other not in reached and (allowed is None or other in allowed):
                     reached.add(other)
                     following.append(other)
             if not following:

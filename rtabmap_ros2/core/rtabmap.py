@@ -73,7 +73,7 @@ class Rtabmap:
         self.db = Database(self.database_path)
         self.db.set_parameters(self.params.to_dict())
         self.memory = Memory(self.params, self.db, self.extractor.binary)
-        self.bayes = BayesFilter(self.params.bayes, self.memory, kept=self.memory.signatures.__contains__)
+        self.bayes = BayesFilter(self.params.bayes, self.memory, kept=self.memory.signatures)
         self.memory.on_graph_change = self.bayes.transitions.invalidate_around
         self.frame_index = self.db.max_frame_index() + 1
         self.localization_mode = False
