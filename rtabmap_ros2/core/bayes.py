@@ -12,13 +12,14 @@ prediction is a handful of numpy operations per frame rather than an N x N matri
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Container, Optional
+from dataclasses import dataclass, replace
+from typing import Container, Mapping, Optional
 
 import numpy as np
 
 from rtabmap_ros2.core.graph import Graph, LinkType
 from rtabmap_ros2.core.params import BayesParams
+from rtabmap_ros2.core.signature import Signature, aligned_words
 
 NEW_LOCATION = -1
 _EPSILON = 1e-9
@@ -32,6 +33,9 @@ MIN_CHANCE_SCORES = 2
 NEGLIGIBLE_TRANSITION = 1e-6
 # The links of a trajectory: the hypothesis refinement walks them (not loop closures).
 TRAJECTORY = (LinkType.NEIGHBOR,)
+# The view alignment moves a hypothesis only to a view with at least this many aligned words: 7 heads in 7
+# tosses (a sign test against a view no better aligned than chance) happen less than 1 % of the time.
+MIN_ALIGNED_WORDS = 7
 # A column of the prior whose excess over the median is below this fraction of the largest
 # excess is not spread over its neighbourhood (see BayesFilter.predict).
 NEGLIGIBLE_EXCESS = 1e-3
@@ -314,6 +318,32 @@ class BayesFilter:
                     best, best_score = node, score
         return best
 
+    def aligned(self, hypothesis: Hypothesis, query: Signature, signatures: Mapping[int, Signature]) -> Hypothesis:
+        """With ``align_radius`` > 0 (not in RTAB-Map): the hypothesis moved to the location, at
+        most ``refine_hops`` neighbour links from it along its trajectory, whose image shows the
+        most of ``query``'s view in place (:func:`aligned_words`; the hypothesis itself on ties,
+        and it needs :data:`MIN_ALIGNED_WORDS`). The likelihood counts shared words wherever they
+        are: two overlapping views of a place share many, and the one with more texture in
+        common wins even when the image is half a frame from it (make_sequence seed 44: revisit
+        images put 200-300 px past the ground truth's window, on words the second view also had).
+        The positions of the words tell which view the image is."""
+        if hypothesis.location_id <= 0 or self.params.align_radius <= 0.0 or len(query.keypoints) < 2:
+            return hypothesis
+        radius = self.params.align_radius * float(np.ptp(query.keypoints[:, 0]))
+        candidates = [n for n in self._graph.hops_from(hypothesis.location_id, self.params.refine_hops, TRAJECTORY,
+                                                       allowed=self._kept)
+                      if n in self.posterior and n in signatures]
+        counts = [int(round(c)) for c in aligned_words(query, [signatures[n] for n in candidates], radius)]
+        if not counts:
+            return hypothesis
+        current = counts[candidates.index(hypothesis.location_id)] if hypothesis.location_id in candidates else 0
+        k = int(np.argmax(counts))  # the nearest on ties (breadth-first order)
+        # A real image shares a handful of words with its neighbours, and a few of them agree on a shift by
+        # chance: the view moved to needs MIN_ALIGNED_WORDS.
+        if counts[k] <= current or counts[k] < MIN_ALIGNED_WORDS:
+            return hypothesis
+        return replace(hypothesis, location_id=candidates[k])
+
     def supported_by_observation(self, location_id: int) -> bool:
         """Not in RTAB-Map (``bayes.min_evidence_ratio``, 0 = off): the last update's likelihood of
         the location, or of a graph neighbour, is at least ``min_evidence_ratio`` times the new
@@ -326,7 +356,13 @@ class BayesFilter:
             return True
         obs = self.observation
         best = max([obs.get(location_id, 1.0)] + [obs.get(n, 1.0) for n in self._graph.neighbors(location_id)])
-        return best >= ratio * obs.get(NEW_LOCATION, 1.0)
+        if best < ratio * obs.get(NEW_LOCATION, 1.0):
+            return False
+        # 1 is the likelihood of a location that did not stand out of this frame's scores (Eq. 3). When
+        # neither the place nor a neighbour did but others did, the image favours other places: the
+        # ratio alone (the new location's likelihood is often 2 or below) would pass it on the belief
+        # carried from a revisit that just ended. An image that favours no place leaves the belief be.
+        return best > 1.0 or not any(v > 1.0 for k, v in obs.items() if k != NEW_LOCATION)
 
     def accepted(self, hypothesis: Hypothesis, previous_value: float = 0.0) -> bool:
         """A loop closure when the hypothesis reaches T_loop and is not the only one in WM, and,

@@ -239,11 +239,21 @@ class BayesParams:
         "config/rtabmap.yaml: 0. SLAM nodes are a second apart and a turning camera's neighbours do not "
         "overlap: with 1, sessions 4-5 of bench_slam.py's seed 5 never merged (the window chose nodes sharing "
         "too few words for RANSAC)", "links")
+    align_radius: float = _p(
+        0.1, "Not in RTAB-Map (0 = off): the highest hypothesis then moves, within bayes.refine_hops neighbour "
+        "links along its trajectory, to the location whose image shows this frame's view most in place: the words "
+        "found once in both that agree on one shift between the two images, within this fraction of the image's "
+        "width, weighted by the part of the frame the two views share at that shift (core/signature.py "
+        "aligned_words; moved only to a view with 7 or more). Words alone cannot tell two overlapping "
+        "views of a place apart, their positions can", "ratio of image width")
     min_evidence_ratio: float = _p(
         0.5, "Not in RTAB-Map (0 = off): a hypothesis reaching T_loop is accepted only when this frame's "
         "likelihood of it, or of a graph neighbour, is at least this ratio of the new location's: the "
         "current image must itself favour the place, not only the belief carried from earlier frames (a "
-        "revisit that ended, a weak match repeated while the camera stands still)", "ratio")
+        "revisit that ended, a weak match repeated while the camera stands still). Nor is it accepted when the "
+        "image's likelihood stands out (Eq. 3) on other locations but not on it or a neighbour: at a jump to "
+        "another street right after a revisit, make_sequence's new location likelihood is often 2 or below and "
+        "the ratio alone passed the old place (bench/bench_lcd.py)", "ratio")
     discount_repeated_evidence: bool = _p(
         True, "Not in RTAB-Map (false = off): a frame's likelihood counts in the filter as 1 - s of an "
         "observation, s its Eq. 1 similarity with the previous frame (core/bayes.py discounted), so that a "
@@ -294,6 +304,7 @@ class BayesParams:
         _check(self.min_evidence_ratio >= 0.0, "bayes.min_evidence_ratio", self.min_evidence_ratio, ">= 0")
         _check(self.refine_hops >= 0, "bayes.refine_hops", self.refine_hops, ">= 0")
         _check(self.refine_window >= 0, "bayes.refine_window", self.refine_window, ">= 0")
+        _check(self.align_radius >= 0.0, "bayes.align_radius", self.align_radius, ">= 0")
         _check(self.epipolar_min_matches >= 8, "bayes.epipolar_min_matches", self.epipolar_min_matches,
                ">= 8 (a fundamental matrix needs 8 pairs)")
         _check(self.epipolar_max_distance > 0.0, "bayes.epipolar_max_distance", self.epipolar_max_distance, "> 0")

@@ -328,7 +328,7 @@ class Rtabmap:
         if self.params.bayes.discount_repeated_evidence:
             weight = 1.0 - min(max(stats.rehearsal_similarity, 0.0), 1.0)
         self.bayes.update(candidates, likelihood(scores, self.params.bayes.likelihood_trim), weight)
-        hypothesis = self.bayes.highest()
+        hypothesis = self.bayes.aligned(self.bayes.highest(), sig, self.memory.signatures)
         stats.new_location_probability = hypothesis.new_location_probability
         return hypothesis
 

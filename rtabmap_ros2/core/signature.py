@@ -8,7 +8,7 @@ closure refinement and the local occupancy grid need it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -55,6 +55,31 @@ class Signature:
         """Word -> feature index, for words that occur exactly once (for RANSAC correspondences)."""
         ids, first, counts = np.unique(self.word_ids, return_index=True, return_counts=True)
         return {int(w): int(i) for w, i, c in zip(ids, first, counts) if c == 1}
+
+
+def aligned_words(query: Signature, others: Sequence[Signature], radius_px: float) -> list[float]:
+    """For each of ``others``: how much of ``query``'s view it shows in place. The words found once
+    in both vote for the shift between the two images (their keypoints' offsets; the median is the
+    shift); those within ``radius_px`` of it agree, and their count is weighted by the fraction of
+    the frame the two views share at that shift (1 - |shift| / image size, per axis, the image size
+    taken from ``query``'s keypoints). Two overlapping views of a place share many words, but the
+    one shifted by half a frame shows only half of this image: the view closest to ``query``'s
+    scores highest."""
+    mine = query.unique_words()
+    extent = np.ptp(query.keypoints, axis=0) if len(query.keypoints) else np.zeros(2)
+    scores = []
+    for other in others:
+        theirs = other.unique_words()
+        shared = [w for w in mine if w in theirs]
+        if not shared or not np.all(extent > 0):
+            scores.append(0.0)
+            continue
+        offsets = query.keypoints[[mine[w] for w in shared]] - other.keypoints[[theirs[w] for w in shared]]
+        shift = np.median(offsets, axis=0)
+        agreeing = np.count_nonzero(np.hypot(*(offsets - shift).T) <= radius_px)
+        shared_frame = np.prod(np.clip(1.0 - np.abs(shift) / extent, 0.0, 1.0))
+        scores.append(float(agreeing * shared_frame))
+    return scores
 
 
 def similarity(a: dict[int, int], b: dict[int, int]) -> float:

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from rtabmap_ros2.core.bayes import NEW_LOCATION, NO_STANDOUT_NEW_LIKELIHOOD, BayesFilter, TransitionModel, discounted, likelihood
+from rtabmap_ros2.core.bayes import (NEW_LOCATION, NO_STANDOUT_NEW_LIKELIHOOD, BayesFilter, Hypothesis, TransitionModel,
+                                     discounted, likelihood)
 from rtabmap_ros2.core.graph import Graph, Link, LinkType
 from rtabmap_ros2.core.params import BayesParams
+from rtabmap_ros2.core.signature import Signature, aligned_words
 
 
 def chain(ids, loops=()) -> Graph:
@@ -240,6 +243,41 @@ def test_a_hypothesis_needs_this_frames_evidence_when_asked():
     assert off.supported_by_observation(stale.location_id)  # 0: RTAB-Map's behaviour
 
 
+def test_a_hypothesis_the_image_argues_against_is_not_accepted():
+    """bayes.min_evidence_ratio at its default: a revisit ends on a jump to another place; the
+    belief lingers over T_loop on the old place, and this image's words stand out on other
+    locations (25-27) but not on it nor its neighbours: not accepted, even though the new
+    location's likelihood is low enough for the ratio alone to pass. An image that favours no
+    place at all (one word shared by chance) leaves the carried belief be."""
+    ids = np.arange(1, 61)
+    graph = chain(ids.tolist())
+
+    def revisit() -> BayesFilter:
+        bayes = BayesFilter(BayesParams(min_evidence_ratio=0.5), graph)
+        scores = {int(i): 0.01 for i in ids}
+        scores.update({11: 0.3, 12: 0.6, 13: 0.3})
+        for _ in range(10):
+            bayes.update(ids, likelihood(scores, trim=0.5))
+        return bayes
+
+    bayes = revisit()
+    jump = {int(i): 0.0 for i in ids}
+    jump.update({j: 0.004 for j in (3, 5, 40, 50)})
+    jump.update({25: 0.006, 26: 0.007, 27: 0.006})
+    bayes.update(ids, likelihood(jump, trim=0.5))
+    stale = bayes.highest()
+    assert stale.location_id in (11, 12, 13) and bayes.accepted(stale)
+    assert bayes.observation[26] > 1.0 and bayes.observation[NEW_LOCATION] <= 2.0
+    assert all(bayes.observation[n] == 1.0 for n in (10, 11, 12, 13, 14))
+    assert not bayes.supported_by_observation(stale.location_id)
+
+    bayes = revisit()
+    bayes.update(ids, likelihood({**{int(i): 0.0 for i in ids}, 30: 0.005}, trim=0.5))
+    carried = bayes.highest()
+    assert bayes.observation[NEW_LOCATION] == NO_STANDOUT_NEW_LIKELIHOOD
+    assert carried.location_id in (11, 12, 13) and bayes.supported_by_observation(carried.location_id)
+
+
 def test_refined_hypothesis_follows_a_revisit_faster_than_the_first_pass():
     """The image shows location 17 now (its neighbours 16 and 18 overlap it), the belief still
     peaks on 14 (the previous frames showed it): the posterior's peak lags; refine_hops moves the
@@ -288,6 +326,44 @@ def test_refinement_ignores_a_lone_spike_and_other_visits():
     far.update({19: 0.5, 20: 0.5, 21: 0.5})
     bayes.update(ids, likelihood(far, trim=0.5))
     assert bayes.observation[20] > 1.0 and bayes.highest().location_id == 14
+
+
+def _view(node: int, words: np.ndarray, xs: np.ndarray) -> Signature:
+    """A location whose image shows ``words`` at columns ``xs`` (rows spread over the image, the same for a word)."""
+    rows = 20.0 + (words * 37 % 440).astype(float)
+    return Signature(id=node, map_id=0, stamp_ns=node, word_ids=words.astype(np.int64),
+                     keypoints=np.stack([xs, rows], axis=1).astype(np.float32))
+
+
+def test_view_alignment_moves_the_hypothesis_to_the_view_showing_the_words_in_place():
+    """The image shares more words with location 14 (a view 300 px further along the street),
+    but they sit 300 px to the left in 14's image; location 11, three locations back, shows 40
+    of them at the same place: the hypothesis moves to 11. Not to 30, as well aligned but reached
+    only through a loop closure (another visit), nor with align_radius 0. A view with only a
+    handful of words in place does not move it (fewer than 7 agree by chance)."""
+    ids = np.arange(1, 41)
+    rng = np.random.default_rng(3)
+    words = np.arange(100, 160)
+    xs = rng.uniform(20, 620, len(words))
+    query = _view(0, words, xs)
+    signatures = {
+        14: _view(14, words, xs + 300.0),                              # all 60 shared, displaced
+        11: _view(11, words[:40], xs[:40] + rng.normal(0, 3, 40)),     # 40 in place
+        30: _view(30, words, xs),                                     # another visit, in place
+    }
+    for params, graph, expected in ((BayesParams(align_radius=0.1), chain(ids.tolist(), loops=[(14, 30)]), 11),
+                                    (BayesParams(align_radius=0.0), chain(ids.tolist()), 14)):
+        bayes = BayesFilter(params, graph, kept=set(ids.tolist()))
+        bayes.posterior = {NEW_LOCATION: 0.1, 11: 0.1, 14: 0.7, 30: 0.1}
+        hypothesis = Hypothesis(14, 0.9, 0.1)
+        assert bayes.aligned(hypothesis, query, signatures) == replace(hypothesis, location_id=expected)
+    # A handful in place against none: chance, it stays.
+    signatures[11] = _view(11, words[:5], xs[:5])
+    bayes = BayesFilter(BayesParams(align_radius=0.1), chain(ids.tolist()), kept=set(ids.tolist()))
+    bayes.posterior = {NEW_LOCATION: 0.1, 11: 0.1, 14: 0.8}
+    assert bayes.aligned(Hypothesis(14, 0.9, 0.1), query, signatures).location_id == 14
+    five, displaced = aligned_words(query, [signatures[11], signatures[14]], 60.0)
+    assert five == pytest.approx(5.0) and displaced == pytest.approx(60 * (1 - 300 / np.ptp(xs)), rel=1e-4)
 
 
 def test_single_hypothesis_is_never_accepted():
