@@ -65,21 +65,28 @@ def aligned_words(query: Signature, others: Sequence[Signature], radius_px: floa
     taken from ``query``'s keypoints). Two overlapping views of a place share many words, but the
     one shifted by half a frame shows only half of this image: the view closest to ``query``'s
     scores highest."""
-    mine = query.unique_words()
+    mine, mine_xy = _words_found_once(query)
     extent = np.ptp(query.keypoints, axis=0) if len(query.keypoints) else np.zeros(2)
     scores = []
     for other in others:
-        theirs = other.unique_words()
-        shared = [w for w in mine if w in theirs]
-        if not shared or not np.all(extent > 0):
+        theirs, theirs_xy = _words_found_once(other)
+        _, i, j = np.intersect1d(mine, theirs, assume_unique=True, return_indices=True)
+        if not len(i) or not np.all(extent > 0):
             scores.append(0.0)
             continue
-        offsets = query.keypoints[[mine[w] for w in shared]] - other.keypoints[[theirs[w] for w in shared]]
+        offsets = mine_xy[i] - theirs_xy[j]
         shift = np.median(offsets, axis=0)
         agreeing = np.count_nonzero(np.hypot(*(offsets - shift).T) <= radius_px)
         shared_frame = np.prod(np.clip(1.0 - np.abs(shift) / extent, 0.0, 1.0))
         scores.append(float(agreeing * shared_frame))
     return scores
+
+
+def _words_found_once(sig: Signature) -> tuple[np.ndarray, np.ndarray]:
+    """The words occurring once in ``sig`` (sorted) and their keypoints."""
+    ids, first, counts = np.unique(sig.word_ids, return_index=True, return_counts=True)
+    once = counts == 1
+    return ids[once], sig.keypoints[first[once]]
 
 
 def similarity(a: dict[int, int], b: dict[int, int]) -> float:
