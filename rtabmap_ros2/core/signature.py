@@ -53,8 +53,14 @@ class Signature:
 
     def unique_words(self) -> dict[int, int]:
         """Word -> feature index, for words that occur exactly once (for RANSAC correspondences)."""
+        ids, index = self.words_found_once()
+        return dict(zip(ids.tolist(), index.tolist()))
+
+    def words_found_once(self) -> tuple[np.ndarray, np.ndarray]:
+        """The words that occur exactly once (sorted) and their feature indices."""
         ids, first, counts = np.unique(self.word_ids, return_index=True, return_counts=True)
-        return {int(w): int(i) for w, i, c in zip(ids, first, counts) if c == 1}
+        once = counts == 1
+        return ids[once], first[once]
 
 
 def aligned_words(query: Signature, others: Sequence[Signature], radius_px: float) -> list[float]:
@@ -65,28 +71,22 @@ def aligned_words(query: Signature, others: Sequence[Signature], radius_px: floa
     taken from ``query``'s keypoints). Two overlapping views of a place share many words, but the
     one shifted by half a frame shows only half of this image: the view closest to ``query``'s
     scores highest."""
-    mine, mine_xy = _words_found_once(query)
+    mine, mine_index = query.words_found_once()
+    mine_xy = query.keypoints[mine_index]
     extent = np.ptp(query.keypoints, axis=0) if len(query.keypoints) else np.zeros(2)
     scores = []
     for other in others:
-        theirs, theirs_xy = _words_found_once(other)
+        theirs, their_index = other.words_found_once()
         _, i, j = np.intersect1d(mine, theirs, assume_unique=True, return_indices=True)
         if not len(i) or not np.all(extent > 0):
             scores.append(0.0)
             continue
-        offsets = mine_xy[i] - theirs_xy[j]
+        offsets = mine_xy[i] - other.keypoints[their_index[j]]
         shift = np.median(offsets, axis=0)
         agreeing = np.count_nonzero(np.hypot(*(offsets - shift).T) <= radius_px)
         shared_frame = np.prod(np.clip(1.0 - np.abs(shift) / extent, 0.0, 1.0))
         scores.append(float(agreeing * shared_frame))
     return scores
-
-
-def _words_found_once(sig: Signature) -> tuple[np.ndarray, np.ndarray]:
-    """The words occurring once in ``sig`` (sorted) and their keypoints."""
-    ids, first, counts = np.unique(sig.word_ids, return_index=True, return_counts=True)
-    once = counts == 1
-    return ids[once], sig.keypoints[first[once]]
 
 
 def similarity(a: dict[int, int], b: dict[int, int]) -> float:
