@@ -29,14 +29,14 @@ def test_defaults_are_the_papers_table_i():
 
 def test_one_detector_for_detect_map_and_the_node():
     """config/rtabmap.yaml (map, demo, the node) keeps detect's loop closure detection (issue 32) but for
-    the three values bench_slam.py measured better for SLAM (the raw score, the new words' comparison
-    and the hypothesis refinement's window)."""
+    the four values bench_slam.py measured for SLAM (the raw score, the new words' comparison, the
+    hypothesis refinement's window and the view alignment)."""
     from dataclasses import replace
 
     from rtabmap_ros2.core.params import default_config_path
 
     slam, defaults = Params.from_yaml(default_config_path()), Params()
-    assert slam.bayes == replace(defaults.bayes, likelihood="eq1", refine_window=0)
+    assert slam.bayes == replace(defaults.bayes, likelihood="eq1", refine_window=0, align_radius=0.0)
     assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False)
     assert slam.features == defaults.features
 
