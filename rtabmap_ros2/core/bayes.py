@@ -33,8 +33,8 @@ MIN_CHANCE_SCORES = 2
 NEGLIGIBLE_TRANSITION = 1e-6
 # The links of a trajectory: the hypothesis refinement walks them (not loop closures).
 TRAJECTORY = (LinkType.NEIGHBOR,)
-# The view alignment moves a hypothesis only to a view with at least this many aligned words: 7 heads in 7
-# tosses (a sign test against a view no better aligned than chance) happen less than 1 % of the time.
+# The view alignment moves a hypothesis only to a view scoring at least this many aligned words: 7 heads in
+# 7 tosses (a sign test against a view no better aligned than chance) happen less than 1 % of the time.
 MIN_ALIGNED_WORDS = 7
 # A column of the prior whose excess over the median is below this fraction of the largest
 # excess is not spread over its neighbourhood (see BayesFilter.predict).
@@ -322,7 +322,7 @@ class BayesFilter:
         """With ``align_radius`` > 0 (not in RTAB-Map): the hypothesis moved to the location, at
         most ``refine_hops`` neighbour links from it along its trajectory, whose image shows the
         most of ``query``'s view in place (:func:`aligned_words`; the hypothesis itself on ties,
-        and it needs :data:`MIN_ALIGNED_WORDS`). The likelihood counts shared words wherever they
+        and the view moved to needs a score of :data:`MIN_ALIGNED_WORDS`). The likelihood counts shared words wherever they
         are: two overlapping views of a place share many, and the one with more texture in
         common wins even when the image is half a frame from it (make_sequence seed 44: revisit
         images put 200-300 px past the ground truth's window, on words the second view also had).
@@ -333,14 +333,15 @@ class BayesFilter:
         candidates = [n for n in self._graph.hops_from(hypothesis.location_id, self.params.refine_hops, TRAJECTORY,
                                                        allowed=self._kept)
                       if n in self.posterior and n in signatures]
-        counts = [int(round(c)) for c in aligned_words(query, [signatures[n] for n in candidates], radius)]
-        if not counts:
+        # Aligned words weighted by the shared part of the frame, rounded to whole words.
+        scores = [int(round(c)) for c in aligned_words(query, [signatures[n] for n in candidates], radius)]
+        if not scores:
             return hypothesis
-        current = counts[candidates.index(hypothesis.location_id)] if hypothesis.location_id in candidates else 0
-        k = int(np.argmax(counts))  # the nearest on ties (breadth-first order)
+        current = scores[candidates.index(hypothesis.location_id)] if hypothesis.location_id in candidates else 0
+        k = int(np.argmax(scores))  # the nearest on ties (breadth-first order)
         # A real image shares a handful of words with its neighbours, and a few of them agree on a shift by
-        # chance: the view moved to needs MIN_ALIGNED_WORDS.
-        if counts[k] <= current or counts[k] < MIN_ALIGNED_WORDS:
+        # chance: the view moved to needs a score of MIN_ALIGNED_WORDS.
+        if scores[k] <= current or scores[k] < MIN_ALIGNED_WORDS:
             return hypothesis
         return replace(hypothesis, location_id=candidates[k])
 

@@ -244,7 +244,7 @@ class BayesParams:
         "links along its trajectory, to the location whose image shows this frame's view most in place: the words "
         "found once in both that agree on one shift between the two images, within this fraction of the image's "
         "width, weighted by the part of the frame the two views share at that shift (core/signature.py "
-        "aligned_words; moved only to a view with 7 or more). Words alone cannot tell two overlapping "
+        "aligned_words; moved only to a view scoring 7 or more). Words alone cannot tell two overlapping "
         "views of a place apart, their positions can", "ratio of image width")
     min_evidence_ratio: float = _p(
         0.5, "Not in RTAB-Map (0 = off): a hypothesis reaching T_loop is accepted only when this frame's "
