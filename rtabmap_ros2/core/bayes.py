@@ -310,29 +310,31 @@ class BayesFilter:
             return sum(obs.get(n, 1.0) for n in self._graph.hops_from(node, self.params.refine_window, TRAJECTORY))
 
         best, best_score = location_id, window(location_id)
-        # Breadth-first (nearest first on ties), through the nodes in memory only: no LTM read.
-        for node in self._graph.hops_from(location_id, self.params.refine_hops, TRAJECTORY, allowed=self._kept):
-            if node in self.posterior:
-                score = window(node)
-                if score > best_score:
-                    best, best_score = node, score
+        for node in self._along_trajectory(location_id):
+            score = window(node)
+            if score > best_score:
+                best, best_score = node, score
         return best
+
+    def _along_trajectory(self, location_id: int) -> list[int]:
+        """The hypotheses at most ``refine_hops`` neighbour links from ``location_id`` (itself
+        first), breadth-first (nearest first), through the nodes in memory only: no LTM read."""
+        return [n for n in self._graph.hops_from(location_id, self.params.refine_hops, TRAJECTORY, allowed=self._kept)
+                if n in self.posterior]
 
     def aligned(self, hypothesis: Hypothesis, query: Signature, signatures: Mapping[int, Signature]) -> Hypothesis:
         """With ``align_radius`` > 0 (not in RTAB-Map): the hypothesis moved to the location, at
         most ``refine_hops`` neighbour links from it along its trajectory, whose image shows the
         most of ``query``'s view in place (:func:`aligned_words`; the hypothesis itself on ties,
-        and the view moved to needs a score of :data:`MIN_ALIGNED_WORDS`). The likelihood counts shared words wherever they
-        are: two overlapping views of a place share many, and the one with more texture in
-        common wins even when the image is half a frame from it (make_sequence seed 44: revisit
-        images put 200-300 px past the ground truth's window, on words the second view also had).
-        The positions of the words tell which view the image is."""
+        and the view moved to needs a score of :data:`MIN_ALIGNED_WORDS`). The likelihood counts
+        shared words wherever they are: two overlapping views of a place share many, and the one
+        with more texture in common wins even when the image is half a frame from it
+        (make_sequence seed 44: revisit images put 200-300 px past the ground truth's window, on
+        words the second view also had). The positions of the words tell which view the image is."""
         if hypothesis.location_id <= 0 or self.params.align_radius <= 0.0 or len(query.keypoints) < 2:
             return hypothesis
         radius = self.params.align_radius * float(np.ptp(query.keypoints[:, 0]))
-        candidates = [n for n in self._graph.hops_from(hypothesis.location_id, self.params.refine_hops, TRAJECTORY,
-                                                       allowed=self._kept)
-                      if n in self.posterior and n in signatures]
+        candidates = [n for n in self._along_trajectory(hypothesis.location_id) if n in signatures]
         # Aligned words weighted by the shared part of the frame, rounded to whole words.
         scores = [int(round(c)) for c in aligned_words(query, [signatures[n] for n in candidates], radius)]
         if not scores:

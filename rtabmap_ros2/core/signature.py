@@ -71,14 +71,16 @@ def aligned_words(query: Signature, others: Sequence[Signature], radius_px: floa
     taken from ``query``'s keypoints). Two overlapping views of a place share many words, but the
     one shifted by half a frame shows only half of this image: the view closest to ``query``'s
     scores highest."""
+    extent = np.ptp(query.keypoints, axis=0) if len(query.keypoints) else np.zeros(2)
+    if not np.all(extent > 0):
+        return [0.0] * len(others)
     mine, mine_index = query.words_found_once()
     mine_xy = query.keypoints[mine_index]
-    extent = np.ptp(query.keypoints, axis=0) if len(query.keypoints) else np.zeros(2)
     scores = []
     for other in others:
         theirs, their_index = other.words_found_once()
         _, i, j = np.intersect1d(mine, theirs, assume_unique=True, return_indices=True)
-        if not len(i) or not np.all(extent > 0):
+        if not len(i):
             scores.append(0.0)
             continue
         offsets = mine_xy[i] - other.keypoints[their_index[j]]

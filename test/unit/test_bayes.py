@@ -329,7 +329,8 @@ def test_refinement_ignores_a_lone_spike_and_other_visits():
 
 
 def _view(node: int, words: np.ndarray, xs: np.ndarray) -> Signature:
-    """A location whose image shows ``words`` at columns ``xs`` (rows spread over the image, the same for a word)."""
+    """A location whose image shows ``words`` at columns ``xs`` (rows spread over the image, the
+    same for a word in every view)."""
     rows = 20.0 + (words * 37 % 440).astype(float)
     return Signature(id=node, map_id=0, stamp_ns=node, word_ids=words.astype(np.int64),
                      keypoints=np.stack([xs, rows], axis=1).astype(np.float32))
