@@ -89,6 +89,8 @@ ABLATION = {
     "virtual place prior 0.95": ("--set", "Bayes/VirtualPlacePriorThr=0.95"),
     "rehearsal similarity 0.7": ("--set", "Mem/RehearsalSimilarity=0.7"),
 }
+# The configurations searching words with the kd-tree (RTAB-Map's approximate search): --ours-runs seeds them.
+SEEDED = ("conformance", UNBOUNDED)
 # Conformance tolerances (issue 32 item 2).
 MERGE_TOLERANCE = 0.20
 VOCABULARY_TOLERANCE = 0.15
@@ -138,21 +140,25 @@ def _reference_runner(scratch: Path) -> Path:
     return _reference_runnable(REFERENCE, scratch) / "rtabmap-reference"
 
 
-def run_reference(ds: DataSet, data: Path, rerun: bool, options: tuple[str, ...] = ()) -> Path:
-    """The reference's output folder for this data set and options (run once, kept)."""
-    suffix = "".join(f"_{o.strip('-').replace('/', '_')}" for o in options)
+def run_reference(ds: DataSet, data: Path, rerun: bool, options: tuple[str, ...] = (), run: int = 1) -> Path:
+    """The reference's output folder for this data set, options and run number (run once, kept)."""
+    suffix = "".join(f"_{o.strip('-').replace('/', '_')}" for o in options) + (f"_run{run}" if run > 1 else "")
     out = data / f"reference_{ds.name.replace(':', '_')}_{_count(ds)}{suffix}"
     if rerun or not (out / "reference_stats.csv").exists():
         t0 = time.perf_counter()
         subprocess.run([str(_reference_runner(data)), str(ds.images), str(out), *options], check=True,
                        stdout=subprocess.DEVNULL)
-        print(f"reference / {ds.name}: {time.perf_counter() - t0:.0f} s", flush=True)
+        print(f"reference / {ds.name} (run {run}): {time.perf_counter() - t0:.0f} s", flush=True)
     return out
 
 
-def run_ours(ds: DataSet, label: str, options: tuple[str, ...], data: Path, rerun: bool) -> Path:
-    """Our ``detect`` output folder for this data set and configuration (kept unless ``rerun``)."""
-    out = data / f"ours_{ds.name.replace(':', '_')}_{_count(ds)}_{label.replace(' ', '_')}"
+def run_ours(ds: DataSet, label: str, options: tuple[str, ...], data: Path, rerun: bool, run: int = 1) -> Path:
+    """Our ``detect`` output folder for this data set, configuration and run (kept unless ``rerun``).
+    Run k > 1 seeds the kd-tree word search with k - 1 (``vocabulary.kdtree_seed``)."""
+    if run > 1:
+        options = (*options, "--set", f"vocabulary.kdtree_seed={run - 1}")
+    suffix = f"_seed{run - 1}" if run > 1 else ""
+    out = data / f"ours_{ds.name.replace(':', '_')}_{_count(ds)}_{label.replace(' ', '_')}{suffix}"
     if rerun or not (out / "DONE").exists():
         t0 = time.perf_counter()
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))))
@@ -162,7 +168,7 @@ def run_ours(ds: DataSet, label: str, options: tuple[str, ...], data: Path, reru
         if done.returncode != 0:
             raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
         (out / "DONE").write_text(json.dumps({"options": list(options), "seconds": time.perf_counter() - t0}))
-        print(f"ours {label} / {ds.name}: {time.perf_counter() - t0:.0f} s", flush=True)
+        print(f"ours {label}{suffix} / {ds.name}: {time.perf_counter() - t0:.0f} s", flush=True)
     return out
 
 
@@ -186,35 +192,79 @@ def _f(row: dict, key: str) -> float:
     return float(value) if value not in ("", None) else 0.0
 
 
-def summarise(ds: DataSet, ours_dir: Path, ref_dir: Path | None) -> dict:
-    """Scores of both sides and where they part."""
-    ours = _rows(ours_dir / "detections.csv")
-    result = {"set": ds.name, "images": len(ours), "ours": _side_summary(ours, ours_dir / "detections.csv", ds.gt,
-                                                                         time_key="total_time_ms")}
-    if ref_dir is None:
+def summarise(ds: DataSet, ours_dirs: list[Path], ref_dirs: list[Path]) -> dict:
+    """Scores of both sides and where they part.
+
+    ``ours_dirs`` holds our runs of one configuration on this set (more than one: the kd-tree search
+    seeded differently), ``ref_dirs`` the reference's runs (none without the reference). The first run
+    of each side makes its row of the table; RTAB-Map seeds its FLANN trees differently on every run,
+    so with several runs the conformance compares the medians of both sides, and each reference run
+    is also held to the tolerances against the median of its other runs (how close it comes to itself).
+    """
+    ours = [_rows(d / "detections.csv") for d in ours_dirs]
+    ours_runs = [_side_summary(rows, d / "detections.csv", ds.gt, time_key="total_time_ms")
+                 for d, rows in zip(ours_dirs, ours)]
+    result = {"set": ds.name, "images": len(ours[0]), "ours": ours_runs[0]}
+    if len(ours_runs) > 1:
+        result["ours_runs"] = [_run_figures(run) for run in ours_runs]
+        result["ours_median"] = _median_run(ours_runs)
+    if not ref_dirs:
         return result
-    ref = _rows(ref_dir / "detections.csv")
-    stats = _rows(ref_dir / "reference_stats.csv")
-    result["reference"] = _side_summary(ref, ref_dir / "detections.csv", ds.gt, time_key="process_time_ms")
-    result["reference"]["merged"] = int(sum(_f(r, "is_last_location_merged_through_weight_update") for r in stats))
-    n = min(len(ours), len(ref))
-    same = [(int(_f(ours[i], "loop_closure_id")) > 0) == (int(_f(ref[i], "loop_closure_id")) > 0) for i in range(n)]
-    result["decision_agreement"] = float(np.mean(same)) if n else None
-    result["first_differences"] = [i + 1 for i in range(n) if not same[i]][:10]
-    o, r = result["ours"], result["reference"]
-    result["conformance"] = {
+    refs = [_rows(d / "detections.csv") for d in ref_dirs]
+    runs = []
+    for ref_dir, ref in zip(ref_dirs, refs):
+        run = _side_summary(ref, ref_dir / "detections.csv", ds.gt, time_key="process_time_ms")
+        run["merged"] = int(sum(_f(r, "is_last_location_merged_through_weight_update")
+                                for r in _rows(ref_dir / "reference_stats.csv")))
+        runs.append(run)
+    result["reference"] = runs[0]
+    same = _same_decisions(ours[0], refs[0])
+    result["first_differences"] = [i + 1 for i, agree in enumerate(same) if not agree][:10]
+    result["decision_agreement"] = float(np.median([np.mean(_same_decisions(o, r)) for o in ours for r in refs]))
+    medians = _median_run(runs)
+    if len(runs) > 1:
+        result["reference_runs"] = [_run_figures(run) for run in runs]
+        result["reference_median"] = medians
+        # The tolerances' floor: each reference run held to them against the median of its other runs.
+        result["reference_runs_within_tolerances"] = sum(
+            _conformance(run, _median_run(runs[:i] + runs[i + 1:]),
+                         float(np.median([np.mean(_same_decisions(refs[i], other))
+                                          for other in refs[:i] + refs[i + 1:]])))["within_tolerances"]
+            for i, run in enumerate(runs))
+        result["reference_self_agreement"] = float(np.median(
+            [np.mean(_same_decisions(a, b)) for i, a in enumerate(refs) for b in refs[i + 1:]]))
+    result["conformance"] = _conformance(_median_run(ours_runs), medians, result["decision_agreement"])
+    return result
+
+
+def _run_figures(run: dict) -> dict:
+    return {k: run[k] for k in ("precision", "recall", "recall_at_100_precision", "accepted", "false_positives",
+                                "merged", "vocabulary_size")}
+
+
+def _median_run(runs: list[dict]) -> dict:
+    return {k: float(np.median([run[k] for run in runs])) for k in ("merged", "vocabulary_size", "precision", "recall")}
+
+
+def _conformance(o: dict, r: dict, agreement: float) -> dict:
+    """Issue 32 item 2's figures of one side ``o`` against the reference's (median) figures ``r``."""
+    c = {
         "merges_ratio": o["merged"] / r["merged"] if r["merged"] else (1.0 if not o["merged"] else None),
         "vocabulary_ratio": o["vocabulary_size"] / r["vocabulary_size"] if r["vocabulary_size"] else None,
         "precision_difference": _diff(o["precision"], r["precision"]),
         "recall_difference": _diff(o["recall"], r["recall"]),
     }
-    c = result["conformance"]
     c["within_tolerances"] = bool(
         c["merges_ratio"] is not None and abs(c["merges_ratio"] - 1) <= MERGE_TOLERANCE
         and c["vocabulary_ratio"] is not None and abs(c["vocabulary_ratio"] - 1) <= VOCABULARY_TOLERANCE
-        and result["decision_agreement"] >= DECISION_AGREEMENT
+        and agreement >= DECISION_AGREEMENT
         and abs(c["precision_difference"] or 0) <= SCORE_TOLERANCE and abs(c["recall_difference"] or 0) <= SCORE_TOLERANCE)
-    return result
+    return c
+
+
+def _same_decisions(a: list[dict], b: list[dict]) -> list[bool]:
+    """Per image of the shorter run: both accept a loop closure, or both reject."""
+    return [(int(_f(x, "loop_closure_id")) > 0) == (int(_f(y, "loop_closure_id")) > 0) for x, y in zip(a, b)]
 
 
 def _diff(a, b):
@@ -313,6 +363,17 @@ def table(results: list[dict]) -> list[str]:
     return lines
 
 
+def _runs_per_set(option: str, values: list[str], parser: argparse.ArgumentParser) -> dict:
+    """``--reference-runs`` / ``--ours-runs`` values -> {set name or None (every other set): runs}."""
+    runs: dict = {None: 1}
+    for value in values:
+        name, _, count = value.rpartition("=")
+        if not count.isdigit() or int(count) < 1:
+            parser.error(f"{option} {value!r}: a positive number of runs, or SET=N")
+        runs[name or None] = int(count)
+    return runs
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS), help="lcd, ms:SEED, sim:SEED")
@@ -325,6 +386,13 @@ def main() -> int:
     parser.add_argument("--rerun", action="store_true", help="run ours again even when a run is kept")
     parser.add_argument("--rerun-reference", action="store_true", help="run the reference again")
     parser.add_argument("--no-reference", action="store_true", help="ours only")
+    parser.add_argument("--reference-runs", nargs="+", default=["1"], metavar="N|SET=N",
+                        help="runs of the reference per set (N for every set, SET=N for one): RTAB-Map seeds its FLANN "
+                             "trees differently on each, so the conformance is then judged against their median, and "
+                             "each run against the median of the others shows how close the reference comes to itself")
+    parser.add_argument("--ours-runs", nargs="+", default=["1"], metavar="N|SET=N",
+                        help=f"runs of ours per set in the configurations {list(SEEDED)} (their kd-tree word search "
+                             "seeded 0, 1, ...): the conformance then compares both sides' medians")
     parser.add_argument("--out", type=Path, default=None,
                         help="results JSON (default: bench/results/lcd.json, lcd_ablation.json with --ablation)")
     args = parser.parse_args()
@@ -336,18 +404,34 @@ def main() -> int:
     sets = [prepare(s, args.frames, args.data) for s in args.sets]
     with_reference = not args.no_reference and (REFERENCE / "rtabmap-reference").exists()
     jobs = [(ds, label) for ds in sets for label in labels]
-    # One reference run per data set and distinct reference options (most configurations share one).
-    ref_jobs = list(dict.fromkeys((ds, REFERENCE_OPTIONS.get(label, ())) for ds, label in jobs))
+    # --reference-runs runs of the reference per data set and distinct reference options (most
+    # configurations share them).
+    ref_keys = list(dict.fromkeys((ds, REFERENCE_OPTIONS.get(label, ())) for ds, label in jobs)) if with_reference else []
+    reference_runs = _runs_per_set("--reference-runs", args.reference_runs, parser)
+    ref_jobs = [(ds, options, run) for ds, options in ref_keys
+                for run in range(1, reference_runs.get(ds.name, reference_runs[None]) + 1)]
+    ours_runs = _runs_per_set("--ours-runs", args.ours_runs, parser)
+    our_jobs = [(ds, label, run) for ds, label in jobs
+                for run in range(1, (ours_runs.get(ds.name, ours_runs[None]) if label in SEEDED else 1) + 1)]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        refs = dict(zip(((ds.name, o) for ds, o in ref_jobs),
-                        pool.map(lambda job: run_reference(job[0], args.data, args.rerun_reference, job[1])
-                                 if with_reference else None, ref_jobs)))
-        outs = list(pool.map(lambda job: run_ours(job[0], job[1], ABLATION[job[1]], args.data, args.rerun), jobs))
+        ref_outs = list(pool.map(lambda job: run_reference(job[0], args.data, args.rerun_reference, job[1], job[2]),
+                                 ref_jobs))
+        our_outs = list(pool.map(lambda job: run_ours(job[0], job[1], ABLATION[job[1]], args.data, args.rerun, job[2]),
+                                 our_jobs))
+    refs: dict = {}
+    for (ds, options, _), out in zip(ref_jobs, ref_outs):
+        refs.setdefault((ds.name, options), []).append(out)
+    ours: dict = {}
+    for (ds, label, _), out in zip(our_jobs, our_outs):
+        ours.setdefault((ds.name, label), []).append(out)
     results = []
-    for (ds, label), out in zip(jobs, outs):
-        ref = refs[(ds.name, REFERENCE_OPTIONS.get(label, ()))]
+    for ds, label in jobs:
+        out = ours[(ds.name, label)][0]
+        ref_dirs = refs.get((ds.name, REFERENCE_OPTIONS.get(label, ())), [])
+        ref = ref_dirs[0] if ref_dirs else None
         res = {"config": label, "options": list(ABLATION[label]),
-               "reference_options": list(REFERENCE_OPTIONS.get(label, ())), **summarise(ds, out, ref)}
+               "reference_options": list(REFERENCE_OPTIONS.get(label, ())),
+               **summarise(ds, ours[(ds.name, label)], ref_dirs)}
         # The reference's row is printed after the last configuration run against it.
         res["print_reference"] = ref is not None and not any(
             REFERENCE_OPTIONS.get(later, ()) == REFERENCE_OPTIONS.get(label, ()) for later in labels[labels.index(label) + 1:])
@@ -365,12 +449,26 @@ def main() -> int:
     lines += table(results)
     print("\n".join(lines))
     for res in results:
-        if "conformance" in res and res["config"] in ("conformance", UNBOUNDED):
+        if "conformance" in res and res["config"] in SEEDED:
             c = res["conformance"]
-            print(f"{res['config']} {res['set']}: merges x{c['merges_ratio'] or 0:.2f}, vocabulary x{c['vocabulary_ratio'] or 0:.2f}, "
-                  f"same decision {res['decision_agreement']:.3f}, dP {c['precision_difference']:+.3f}, "
-                  f"dR {c['recall_difference']:+.3f}: {'within' if c['within_tolerances'] else 'OUTSIDE'} tolerances; "
+            ours_side = f"the median of {len(res['ours_runs'])} seeds" if "ours_runs" in res else "ours"
+            against = f"the median of {len(res['reference_runs'])} reference runs" if "reference_runs" in res else "the reference"
+            print(f"{res['config']} {res['set']}, {ours_side} against {against}: merges x{c['merges_ratio'] or 0:.2f}, "
+                  f"vocabulary x{c['vocabulary_ratio'] or 0:.2f}, same decision {res['decision_agreement']:.3f}, "
+                  f"dP {c['precision_difference']:+.3f}, dR {c['recall_difference']:+.3f}: "
+                  f"{'within' if c['within_tolerances'] else 'OUTSIDE'} tolerances; "
                   f"first differences at images {res['first_differences']}")
+            if "reference_runs" in res:
+                runs = res["reference_runs"]
+                spread = ", ".join(f"{k} {min(r[k] for r in runs):.3g}-{max(r[k] for r in runs):.3g}"
+                                   for k in ("precision", "recall", "merged", "vocabulary_size"))
+                print(f"  the reference's own runs: {spread}; same decision run to run "
+                      f"{res['reference_self_agreement']:.3f}; {res['reference_runs_within_tolerances']} of "
+                      f"{len(runs)} within the tolerances of the median of its other runs")
+            if "ours_runs" in res:
+                runs = res["ours_runs"]
+                print("  our seeds: " + ", ".join(f"{k} {min(r[k] for r in runs):.3g}-{max(r[k] for r in runs):.3g}"
+                                                  for k in ("precision", "recall", "merged", "vocabulary_size")))
     path = args.out or RESULTS / ("lcd_ablation.json" if args.ablation else "lcd.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"frames": args.frames, "sets": args.sets, "configs": labels,

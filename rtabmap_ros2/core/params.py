@@ -88,6 +88,9 @@ class VocabularyParams:
         "remove), auto (flat until ivf_min_words words, then ivf), kdtree (RTAB-Map's Kp/NNStrategy 1: FLANN "
         "randomized kd-trees over binary descriptors' bits, 32 checks, approximate; config/rtabmap_reference.yaml)",
     )
+    kdtree_seed: int = _p(
+        0, "kdtree: seed of the trees' random choices (FLANN draws its own on every run, so RTAB-Map itself "
+        "is not repeatable: bench/bench_lcd.py --ours-runs compares several seeds with several of its runs)")
     ivf_min_words: int = _p(
         10000, "auto: switch from the exact flat index to IVF at this size (bench/bench_vocabulary.py: "
         "IVF is faster than flat from ~10k words, agreeing with exact search on 99.95 % of decisions)",

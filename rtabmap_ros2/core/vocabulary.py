@@ -833,7 +833,7 @@ class Vocabulary:
         """2-NN distances (N,2) and word ids (N,2) (-1 where not found)."""
         if self.params.index == "kdtree":
             if self._kdtree is None:
-                self._kdtree = RandomizedKdTrees(self._dim)
+                self._kdtree = RandomizedKdTrees(self._dim, seed=self.params.kdtree_seed)
             if self._kdtree_pending:
                 ids = sorted(self._kdtree_pending)
                 self._kdtree.add(np.stack([self._kdtree_pending[i] for i in ids]), np.asarray(ids, np.int64))

@@ -108,6 +108,30 @@ def test_vocabulary_with_kdtree_quantises_a_revisit_into_its_words(rng):
     assert not np.isin(third, ids[:100]).any()
 
 
+def test_vocabulary_kdtree_seed_changes_the_approximate_words_not_the_exact_ones(rng):
+    """vocabulary.kdtree_seed seeds the trees (RTAB-Map's FLANN draws its own every run): the same
+    seed gives the same words; another seed changes which of a far view's descriptors the search
+    finds the word of (or makes a new word), while a view close to its place finds its words."""
+    places = [random_binary(rng, 300) for _ in range(8)]
+    revisit = flip_bits(rng, places[0], 4)
+    far = flip_bits(rng, places[3], 40)
+
+    def words(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        vocabulary = Vocabulary(VocabularyParams(index="kdtree", kdtree_seed=seed), binary=True)
+        first, _ = vocabulary.quantize(places[0])
+        for place in places[1:]:
+            vocabulary.quantize(place)
+        again, _ = vocabulary.quantize(revisit)
+        chance, _ = vocabulary.quantize(far)
+        return first, again, chance
+
+    first, again, chance = words(0)
+    np.testing.assert_array_equal(np.concatenate(words(0)), np.concatenate([first, again, chance]))
+    other_first, other_again, other_chance = words(1)
+    assert np.mean(again == first) > 0.9 and np.mean(other_again == other_first) > 0.9
+    assert not np.array_equal(chance, other_chance)
+
+
 def test_kdtree_needs_binary_descriptors():
     with pytest.raises(ParameterError, match="binary descriptors"):
         Vocabulary(VocabularyParams(index="kdtree"), binary=False)
