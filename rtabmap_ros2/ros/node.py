@@ -778,6 +778,21 @@ class RtabmapNode(Node):
         super().destroy_node()
 
 
+def _spin(executor: MultiThreadedExecutor, context) -> None:
+    """``executor.spin()``, ended by a shutdown from another thread (the worker's unrecoverable error)
+    as ExternalShutdownException wherever it lands: mid-wait, rclpy raises RCLError ("the given context
+    is not valid") instead, which would end the process with a traceback and status 1 instead of
+    EXIT_UNRECOVERABLE."""
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        raise
+    except Exception:
+        if context.ok():
+            raise
+        raise ExternalShutdownException() from None
+
+
 def main(args: Optional[list[str]] = None) -> None:
     """Console script ``rtabmap`` (``ros2 run rtabmap_ros2 rtabmap``)."""
     rclpy.init(args=args)
@@ -787,7 +802,7 @@ def main(args: Optional[list[str]] = None) -> None:
         # Sensors, services, and tf2's listener (served while a sensor callback waits for a transform).
         executor = MultiThreadedExecutor(num_threads=3)
         executor.add_node(node)
-        executor.spin()
+        _spin(executor, node.context)
     except KeyboardInterrupt:
         pass
     except ExternalShutdownException:

@@ -617,6 +617,29 @@ def test_unrecoverable_error_ends_the_process_non_zero(ros_env, context, tmp_pat
     assert "unrecoverable error" in out and "disk is full" in out
 
 
+def test_a_shutdown_landing_mid_wait_ends_the_spin_as_an_external_shutdown():
+    """The worker's unrecoverable error shuts the context down from its thread; if that lands while
+    the executor builds its wait set, rclpy raises RCLError, not ExternalShutdownException (seen in
+    CI under load: the process then ended with a traceback and status 1, not EXIT_UNRECOVERABLE).
+    After a shutdown any error of the spin is that shutdown; before it, an error is an error."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from rtabmap_ros2.ros.node import _spin
+
+    class WaitSetFails:
+        def spin(self):
+            raise RuntimeError("failed to initialize wait set: the given context is not valid")
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    with pytest.raises(RuntimeError, match="wait set"):
+        _spin(WaitSetFails(), context)
+    context.try_shutdown()
+    with pytest.raises(ExternalShutdownException):
+        _spin(WaitSetFails(), context)
+
+
 @pytest.mark.parametrize("encoding", ["rgba8", "bgra8", "mono16", "bayer_rggb8", "bayer_grbg16", "yuv422", "yuyv"])
 def test_drivers_encodings_are_mapped(harness, frames, encoding):
     """Frames whose colour image comes in each encoding drivers publish (and a depth image at half the
