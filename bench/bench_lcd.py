@@ -24,7 +24,7 @@ new-location posterior, raw scores (count above 0, mean, max), highest hypothesi
 and summarises where the two part (same accept / reject decision, first images that differ).
 
 The reference is not repeatable: RTAB-Map seeds its FLANN trees differently on every run, so the
-same images give it 41-44 loop closures of 44 on its own 84 images, or 4-6 rehearsal merges on the
+same images give it 40-44 accepted loop closures on its own 84 images, or 4-6 rehearsal merges on the
 simulator's seed 7. ``--reference-runs N`` (or ``SET=N``) runs it N times per set and
 ``--ours-runs N`` runs the conformance configurations with N seeds of our kd-tree search
 (``vocabulary.kdtree_seed`` 0 .. N-1); issue 32's tolerances then compare both sides' medians, and
