@@ -214,9 +214,10 @@ def summarise(ds: DataSet, ours_dirs: list[Path], ref_dirs: list[Path]) -> dict:
     ours_runs = [_side_summary(rows, d / "detections.csv", ds.gt, time_key="total_time_ms")
                  for d, rows in zip(ours_dirs, ours)]
     result = {"set": ds.name, "images": len(ours[0]), "ours": ours_runs[0]}
+    ours_median = _median_run(ours_runs)
     if len(ours_runs) > 1:
         result["ours_runs"] = [_run_figures(run) for run in ours_runs]
-        result["ours_median"] = _median_run(ours_runs)
+        result["ours_median"] = ours_median
     if not ref_dirs:
         return result
     refs = [_rows(d / "detections.csv") for d in ref_dirs]
@@ -234,15 +235,19 @@ def summarise(ds: DataSet, ours_dirs: list[Path], ref_dirs: list[Path]) -> dict:
     if len(runs) > 1:
         result["reference_runs"] = [_run_figures(run) for run in runs]
         result["reference_median"] = medians
+        # Same decisions of every pair of reference runs, each pair compared once.
+        n = len(refs)
+        agreement = np.ones((n, n))
+        for i in range(n):
+            for j in range(i + 1, n):
+                agreement[i, j] = agreement[j, i] = np.mean(_same_decisions(refs[i], refs[j]))
+        others = [[j for j in range(n) if j != i] for i in range(n)]
         # The tolerances' floor: each reference run held to them against the median of its other runs.
         result["reference_runs_within_tolerances"] = sum(
-            _conformance(run, _median_run(runs[:i] + runs[i + 1:]),
-                         float(np.median([np.mean(_same_decisions(refs[i], other))
-                                          for other in refs[:i] + refs[i + 1:]])))["within_tolerances"]
-            for i, run in enumerate(runs))
-        result["reference_self_agreement"] = float(np.median(
-            [np.mean(_same_decisions(a, b)) for i, a in enumerate(refs) for b in refs[i + 1:]]))
-    result["conformance"] = _conformance(_median_run(ours_runs), medians, result["decision_agreement"])
+            _conformance(runs[i], _median_run([runs[j] for j in others[i]]),
+                         float(np.median(agreement[i, others[i]])))["within_tolerances"] for i in range(n))
+        result["reference_self_agreement"] = float(np.median(agreement[np.triu_indices(n, 1)]))
+    result["conformance"] = _conformance(ours_median, medians, result["decision_agreement"])
     return result
 
 
@@ -372,6 +377,12 @@ def table(results: list[dict]) -> list[str]:
     return lines
 
 
+def _spread(runs: list[dict]) -> str:
+    """The range over ``runs`` of the figures the conformance compares."""
+    return ", ".join(f"{k} {min(r[k] for r in runs):.3g}-{max(r[k] for r in runs):.3g}"
+                     for k in ("precision", "recall", "merged", "vocabulary_size"))
+
+
 def _runs_per_set(option: str, values: list[str], parser: argparse.ArgumentParser) -> dict:
     """``--reference-runs`` / ``--ours-runs`` values -> {set name or None (every other set): runs}."""
     runs: dict = {None: 1}
@@ -468,16 +479,11 @@ def main() -> int:
                   f"{'within' if c['within_tolerances'] else 'OUTSIDE'} tolerances; "
                   f"first differences at images {res['first_differences']}")
             if "reference_runs" in res:
-                runs = res["reference_runs"]
-                spread = ", ".join(f"{k} {min(r[k] for r in runs):.3g}-{max(r[k] for r in runs):.3g}"
-                                   for k in ("precision", "recall", "merged", "vocabulary_size"))
-                print(f"  the reference's own runs: {spread}; same decision run to run "
+                print(f"  the reference's own runs: {_spread(res['reference_runs'])}; same decision run to run "
                       f"{res['reference_self_agreement']:.3f}; {res['reference_runs_within_tolerances']} of "
-                      f"{len(runs)} within the tolerances of the median of its other runs")
+                      f"{len(res['reference_runs'])} within the tolerances of the median of its other runs")
             if "ours_runs" in res:
-                runs = res["ours_runs"]
-                print("  our seeds: " + ", ".join(f"{k} {min(r[k] for r in runs):.3g}-{max(r[k] for r in runs):.3g}"
-                                                  for k in ("precision", "recall", "merged", "vocabulary_size")))
+                print(f"  our seeds: {_spread(res['ours_runs'])}")
     path = args.out or RESULTS / ("lcd_ablation.json" if args.ablation else "lcd.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"frames": args.frames, "sets": args.sets, "configs": labels,
