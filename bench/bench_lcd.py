@@ -350,8 +350,8 @@ def distributions(ours_dir: Path, ref_dir: Path, gt: Path) -> dict:
             ("words_extracted", [_f(o, "words_extracted") for o in ours[:n]],
              [_f(s, "words_extracted_from_the_last_image") for s in stats[:n]]),
             ("new_words", [_f(o, "words_added") for o in ours[:n]], [_f(s, "dictionary_new_words") for s in stats[:n]]),
-            ("likelihood_nonzero", [_f(o, "likelihood_nonzero") for o in ours[:n]],
-             [_f(s, "likelihood_nonzero") for s in stats[:n]]),
+            *((key, [_f(o, key) for o in ours[:n]], [_f(s, key) for s in stats[:n]])
+              for key in ("likelihood_nonzero", "likelihood_mean", "likelihood_max")),
             ("hypothesis_value", [_f(o, "highest_hypothesis_value") for o in ours[:n]],
              [_f(r, "highest_hypothesis_value") for r in ref[:n]])):
         out[name] = {"ours_loop": med(mine, loop[:n]), "ref_loop": med(theirs, loop[:n]),
