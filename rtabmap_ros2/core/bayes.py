@@ -4,7 +4,8 @@ States: ``S_t = -1`` (:data:`NEW_LOCATION`, the current location is new) and ``S
 location j in WM. Eq. 2: ``p(S_t | L^t) = η p(L_t | S_t) Σ_i p(S_t | S_t-1 = i) p(S_t-1 = i | L^t-1)``.
 
 The transition model spreads the belief of a location j over its graph neighbourhood (neighbour
-and loop closure links, hops counted through nodes that are not in WM too) with a discretised
+and loop closure links, hops counted through nodes that are not in WM too; a loop closure link
+crossed without a hop with ``bayes.loop_closure_hop`` false, as RTAB-Map does) with a discretised
 Gaussian of hop distance, restricted to WM and normalised to ``loop_closure_prior`` (0.9).
 Neighbourhoods are cached per location and recomputed for the nodes at a graph change, so the
 prediction is a handful of numpy operations per frame rather than an N x N matrix.
@@ -33,6 +34,7 @@ MIN_CHANCE_SCORES = 2
 NEGLIGIBLE_TRANSITION = 1e-6
 # The links of a trajectory: the hypothesis refinement walks them (not loop closures).
 TRAJECTORY = (LinkType.NEIGHBOR,)
+LOOP_CLOSURES = tuple(t for t in LinkType if t.is_loop_closure)
 # The view alignment moves a hypothesis only to a view scoring at least this many aligned words: 7 heads in
 # 7 tosses (a sign test against a view no better aligned than chance) happen less than 1 % of the time.
 MIN_ALIGNED_WORDS = 7
@@ -135,6 +137,8 @@ class TransitionModel:
         self._graph = graph
         self._kept = kept
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # RTAB-Map's neighbourhoods (bayes.loop_closure_hop false): loop closures link one place.
+        self._free = () if params.loop_closure_hop else LOOP_CLOSURES
         hops = np.arange(params.neighborhood + 1)
         gaussian = np.exp(-0.5 * (hops / params.sigma) ** 2)
         # Hops whose weight is negligible are not searched (with sigma 1.6: beyond 8 of the 16),
@@ -166,7 +170,7 @@ class TransitionModel:
         """(ids, unnormalised Gaussian weights) of the nodes whose transition weight is not negligible."""
         cached = self._cache.get(node_id)
         if cached is None:
-            hops = self._graph.hops_from(node_id, self._radius)
+            hops = self._graph.hops_from(node_id, self._radius, free=self._free)
             if self._kept is not None:
                 hops = {n: d for n, d in hops.items() if n in self._kept}
             ids = np.fromiter(hops.keys(), dtype=np.int64, count=len(hops))

@@ -145,23 +145,28 @@ class Graph:
         return list(seen.values())
 
     def hops_from(self, start: int, max_hops: int, types: Iterable[LinkType] | None = None,
-                  allowed: Mapping[int, object] | set[int] | None = None) -> dict[int, int]:
-        """Breadth-first hop distance to every node within ``max_hops`` (start included, at 0)."""
+                  allowed: Mapping[int, object] | set[int] | None = None,
+                  free: Iterable[LinkType] = ()) -> dict[int, int]:
+        """Hop distance to every node within ``max_hops`` (start included, at 0); links of ``free``
+        types are crossed without counting a hop (0-1 breadth-first search)."""
         wanted = None if types is None else set(types)
+        free = set(free)
         dist = {start: 0}
         queue = deque([start])
         while queue:
             node = queue.popleft()
             d = dist[node]
-            if d >= max_hops:
-                continue
             for other, link in self._adjacency.get(node, {}).items():
-                if other in dist or (wanted is not None and link.type not in wanted):
+                if (wanted is not None and link.type not in wanted) or (allowed is not None and other not in allowed):
                     continue
-                if allowed is not None and other not in allowed:
+                step = 0 if link.type in free else 1
+                if d + step > max_hops or dist.get(other, max_hops + 1) <= d + step:
                     continue
-                dist[other] = d + 1
-                queue.append(other)
+                dist[other] = d + step
+                if step:
+                    queue.append(other)
+                else:
+                    queue.appendleft(other)
         return dist
 
     def links_within(self, nodes: set[int] | Mapping[int, object]) -> list[Link]:

@@ -371,11 +371,12 @@ class Memory:
         return found[:limit]
 
     def hops_from(self, start: int, max_hops: int, types: Optional[tuple[LinkType, ...]] = None,
-                  allowed: Optional[Container[int]] = None) -> dict[int, int]:
+                  allowed: Optional[Container[int]] = None, free: tuple[LinkType, ...] = ()) -> dict[int, int]:
         """Hop distance to every node within ``max_hops`` of ``start`` over the whole graph, WM
         and LTM (``Graph.hops_from``, LTM links read from the database): the Bayes filter's
-        neighbourhoods, as when every link was in RAM. With ``allowed``, only through nodes in it."""
-        return {node: hop for hop, level in enumerate(self._levels(start, max_hops, types, allowed=allowed))
+        neighbourhoods, as when every link was in RAM. With ``allowed``, only through nodes in it;
+        links of ``free`` types are crossed without counting a hop."""
+        return {node: hop for hop, level in enumerate(self._levels(start, max_hops, types, allowed=allowed, free=free))
                 for node in level}
 
     def neighbors(self, node: int, types: Optional[tuple[LinkType, ...]] = None) -> list[int]:
@@ -383,25 +384,36 @@ class Memory:
         return self._adjacent([node], types)
 
     def _levels(self, start: int, reach: int, types: Optional[tuple[LinkType, ...]],
-                reached: Optional[set[int]] = None, allowed: Optional[Container[int]] = None) -> Iterator[list[int]]:
+                reached: Optional[set[int]] = None, allowed: Optional[Container[int]] = None,
+                free: tuple[LinkType, ...] = ()) -> Iterator[list[int]]:
         """Breadth-first levels from ``start`` (itself first) up to ``reach`` hops over links of
         ``types`` (None: all) and nodes in ``allowed`` (None: all), RAM for locations in memory,
-        the database for LTM ones; every node reached goes into ``reached``."""
+        the database for LTM ones; every node reached goes into ``reached``. Nodes reached through
+        links of ``free`` types (among ``types``) join the level they are reached from."""
         reached = set() if reached is None else reached
+        free = tuple(t for t in free if types is None or t in types)
+
+        def unreached(nodes: list[int], through: Optional[tuple[LinkType, ...]]) -> list[int]:
+            out = []
+            for other in self._adjacent(nodes, through):
+                if other not in reached and (allowed is None or other in allowed):
+                    reached.add(other)
+                    out.append(other)
+            return out
+
         reached.add(start)
         level = [start]
         for hop in range(reach + 1):
+            frontier = level
+            while free and frontier:
+                frontier = unreached(frontier, free)
+                level.extend(frontier)
             yield level
             if hop == reach:
                 return
-            following: list[int] = []
-            for other in self._adjacent(level, types):
-                if other not in reached and (allowed is None or other in allowed):
-                    reached.add(other)
-                    following.append(other)
-            if not following:
+            level = unreached(level, types)
+            if not level:
                 return
-            level = following
 
     def _adjacent(self, nodes: list[int], types: Optional[tuple[LinkType, ...]]) -> list[int]:
         """Nodes linked to any of ``nodes`` by a link of ``types`` (None: all), in link order."""
