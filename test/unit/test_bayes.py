@@ -175,6 +175,31 @@ def test_neighbourhood_reaches_through_a_node_not_in_wm():
     assert belief[1] / belief[2] == pytest.approx(1.0 / math.exp(-0.5 * (3 / 1.6) ** 2))
 
 
+def test_without_a_loop_closure_hop_a_place_and_its_revisit_share_the_belief_equally():
+    """bayes.loop_closure_hop false (RTAB-Map's): a location and the one it closed a loop with are
+    the same place, so the belief carried from it is shared equally by both visits' chains."""
+    # First visit 1..20, second visit 101..120; 110 closed a loop with 10.
+    ids = list(range(1, 21)) + list(range(101, 121))
+    graph = Graph([Link(a, b, LinkType.NEIGHBOR) for a, b in zip(range(1, 20), range(2, 21))]
+                  + [Link(a, b, LinkType.NEIGHBOR) for a, b in zip(range(101, 120), range(102, 121))]
+                  + [Link(110, 10, LinkType.LOOP_INTRA)])
+    wm = np.array(ids)
+    beliefs = {}
+    for hop in (True, False):
+        bayes = BayesFilter(BayesParams(loop_closure_hop=hop), graph)
+        bayes.posterior = {NEW_LOCATION: 0.0, 10: 1.0}
+        belief = bayes.predict(wm)
+        beliefs[hop] = dict(zip(ids, belief[1:]))
+        assert belief[0] == pytest.approx(0.1) and belief.sum() == pytest.approx(1.0)
+    same = beliefs[False]
+    assert same[110] == pytest.approx(same[10]) and same[111] == pytest.approx(same[11])
+    assert same[109] == pytest.approx(same[9])
+    hop = beliefs[True]
+    assert hop[110] == pytest.approx(hop[10] * math.exp(-0.5 / 1.6 ** 2))
+    # The first visit keeps less of the belief at the place itself: it shares it with the second.
+    assert same[10] < hop[10]
+
+
 def test_repeated_strong_observation_drives_the_posterior_up_until_accepted():
     ids = np.arange(1, 31)
     bayes = BayesFilter(BayesParams(), chain(ids.tolist()))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Link, LinkType, agree, agree_many, component_labels, connected_components
+from rtabmap_ros2.core.graph import Graph, Link, LinkType, agree, agree_many, component_labels, connected_components
 
 
 def _link(a: int, b: int) -> Link:
@@ -63,3 +63,17 @@ def test_component_labels_match_a_graph_search(rng):
             got.setdefault(label, set()).add(node)
         assert sorted(map(sorted, got.values())) == sorted(map(sorted, expected))
         assert all(label == min(got[label]) for label in got)
+
+
+def test_hops_cross_free_link_types_without_counting():
+    """RTAB-Map's neighbourhoods (Memory::getNeighborsId, incrementMarginOnLoop false): a loop
+    closure joins two places at the same distance, also at the edge of the reach."""
+    # 1 - 2 - 3 - 4 and 10 - 11 - 12, loop closure 2 - 11, loop closure 4 - 20.
+    links = [_link(a, b) for a, b in ((1, 2), (2, 3), (3, 4), (10, 11), (11, 12))]
+    links += [Link(2, 11, LinkType.LOOP_INTRA), Link(4, 20, LinkType.LOOP_INTER)]
+    graph = Graph(links)
+    loops = (LinkType.LOOP_INTRA, LinkType.LOOP_INTER)
+    assert graph.hops_from(2, 2) == {2: 0, 1: 1, 3: 1, 11: 1, 4: 2, 10: 2, 12: 2}
+    assert graph.hops_from(2, 2, free=loops) == {2: 0, 11: 0, 1: 1, 3: 1, 10: 1, 12: 1, 4: 2, 20: 2}
+    assert graph.hops_from(1, 1, free=loops) == {1: 0, 2: 1, 11: 1}
+    assert graph.hops_from(12, 3, types=(LinkType.NEIGHBOR,), free=loops) == {12: 0, 11: 1, 10: 2}

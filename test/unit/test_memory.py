@@ -358,6 +358,10 @@ def test_ltm_links_leave_ram_and_come_back_with_retrieval(tmp_path, descriptors)
         for limit in (1, 2, 3):
             assert memory.retrieval_candidates(hypothesis, limit) == expected[:limit]
         assert memory.retrieval_candidates(hypothesis, 2, exclude=expected[:1]) == expected[1:3]
+    # The transition model's hops (RAM and database alike), loop closures counted as a hop or not.
+    for free in ((), (LinkType.LOOP_INTRA, LinkType.LOOP_INTER)):
+        for start in (1, 6, 12):
+            assert memory.hops_from(start, 4, free=free) == whole.hops_from(start, 4, free=free)
     # 6's time neighbours in LTM: 5, 7 (1 hop), 4, 8 (2 hops), 3, 9 (3 hops)...
     assert memory.retrieval_candidates(6)[:6] == [5, 7, 4, 8, 3, 9]
     # A retrieved location's links come back, LTM ends included, as stored.
