@@ -88,6 +88,7 @@ ABLATION = {
     "refinement 16 hops": ("--set", "bayes.refine_hops=16"),
     "no view alignment": ("--set", "bayes.align_radius=0"),
     "no repeated evidence discount": ("--set", "bayes.discount_repeated_evidence=false"),
+    "no loop closure hop": ("--set", "bayes.loop_closure_hop=false"),
     UNBOUNDED: CONFORMANCE + ("--set", "memory.time_threshold_ms=0"),
     "evidence ratio 1": ("--set", "bayes.min_evidence_ratio=1"),
     "approximate search": APPROXIMATE,

@@ -219,12 +219,14 @@ class BayesParams:
     loop_closure_prior: float = _p(0.9, "Sum of p(S_t>=0 | S_t-1=j) over the neighbourhood of j", "probability")
     loop_closure_hop: bool = _p(
         True, "Whether a loop closure link counts as a hop of the transition model's neighbourhood (true: as a "
-        "neighbour link does). false is RTAB-Map's (BayesFilter's neighbourhoods, Memory::getNeighborsId with "
-        "incrementMarginOnLoop false): a location and the locations it closed a loop with are one place, at the "
-        "same distance, so each visit's chain shares the belief carried to a revisited place. With false in the "
-        "conformance setting the belief on make_sequence seed 44's loop images weighted by their likelihood "
-        "(the hypotheses' share of the filter's normaliser) is the reference's (median 1.020 against 1.019; "
-        "true: 1.025) and its recall no longer exceeds the reference's (bench/bench_lcd.py)")
+        "neighbour link does). false is RTAB-Map's (its BayesFilter's neighbourhoods, Memory::getNeighborsId with "
+        "incrementMarginOnLoop false): a location and the ones it closed a loop with are one place, so the belief "
+        "carried to a revisited place is shared by every visit's chain and compounds less; "
+        "config/rtabmap_reference.yaml's, where it brings make_sequence seed 44's recall down to the reference's "
+        "(docs/benchmarks.md). With the defaults false costs recall at 100 % precision on five of seven sets "
+        "(make_sequence 0.382 / 0.256 / 0.156 -> 0.337 / 0.251 / 0.144, the simulator's seed 11 0.925 -> 0.898) "
+        "and recall on make_sequence (0.804 / 0.755 / 0.645 -> 0.791 / 0.751 / 0.608) "
+        "(bench/bench_lcd.py --configs defaults \"no loop closure hop\")")
     likelihood: str = _p(
         "tf_idf", "Raw score of a WM location before Eq. 3-4: tf_idf (RTAB-Map's Kp/TfIdfLikelihoodUsed: "
         "sum over the frame's words of n_wj log10(N / n_w) / n_j, over the inverted index) or eq1 "
