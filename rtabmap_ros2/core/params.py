@@ -223,7 +223,7 @@ class BayesParams:
         "incrementMarginOnLoop false): a location and the ones it closed a loop with are one place, so the belief "
         "carried to a revisited place is shared by every visit's chain and compounds less; "
         "config/rtabmap_reference.yaml's, where it brings make_sequence seed 44's recall down to the reference's "
-        "(docs/benchmarks.md). With the defaults false costs recall at 100 % precision on five of seven sets "
+        "(bench/bench_transition.py, docs/benchmarks.md). With the defaults false costs recall at 100 % precision on five of seven sets "
         "(make_sequence 0.382 / 0.256 / 0.156 -> 0.337 / 0.251 / 0.144, the simulator's seed 11 0.925 -> 0.898) "
         "and recall on make_sequence (0.804 / 0.755 / 0.645 -> 0.791 / 0.751 / 0.608) "
         "(bench/bench_lcd.py --configs defaults \"no loop closure hop\")")
