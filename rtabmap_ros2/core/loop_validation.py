@@ -1,9 +1,11 @@
 """Whether a verified loop closure is kept, within a session and between sessions.
 
 The 2014 paper adds every loop closure that passes visual verification and ICP (§II-A), and
-RTAB-Map judges it afterwards by the optimised graph (RGBD/OptimizeMaxError). Beyond the papers,
-because perceptual aliasing in a building (look-alike posters, symmetric corridors) passes
-RANSAC and ICP and a multi-session map has nothing to judge the first link between two maps
+RTAB-Map judges it afterwards by the optimised graph (RGBD/OptimizeMaxError), against the
+covariance the registration gives it (PnP's from its inliers' residuals: a hand-held camera's
+loop closure taken in motion blur, degrees off, is rejected there). Beyond the papers, because
+perceptual aliasing in a building (look-alike posters, symmetric corridors) passes the visual
+registration and ICP and a multi-session map has nothing to judge the first link between two maps
 against (the 2014 paper's §IV asks for this kind of safety for multi-session):
 
 - :class:`LoopValidator` holds a loop closure that would join two unconnected maps until others
