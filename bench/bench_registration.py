@@ -9,12 +9,14 @@ Usage: ``python bench/bench_registration.py [--quick]``. Prints tables and write
    vocabulary of ``config/rtabmap.yaml``, the older frame quantised first, 3D words from depth)
    and is registered new -> old as a loop closure (6 DoF). Per pair: accepted or not, inliers,
    translation / rotation error against the ground truth, for PnP (``registration.estimation``
-   pnp, the default) beside the 3D-3D RANSAC (3d, the estimate before issue 49), and the
-   standard deviations of the PnP link's information matrix. Beside them, what the images
-   themselves say: the relative pose that best aligns the two images photometrically (every pixel
-   with depth, started at the ground truth), against the ground truth. Summary per estimator
-   and ablation (no two-view refinement, no guided matching, keypoints undistorted with the
-   fr1 calibration): accepted, median and max error over the accepted, over 3 cm or 1.5 deg, time.
+   auto in 6 DoF, the default) beside the 3D-3D RANSAC (3d, the estimate before issue 49), and the
+   standard deviations of the PnP link's information matrix; then whether RGBD/OptimizeMaxError
+   keeps the loop closure in a local map of the camera's way between the two frames (motion capture
+   odometry, kept_by_graph_check). Beside them, what the images themselves say: the relative pose
+   that best aligns the two images photometrically (every pixel with depth, started at the ground
+   truth), against the ground truth, and each estimate's distance from it. Summary per estimator
+   and ablation (no two-view refinement, no guided matching, keypoints undistorted with the fr1
+   calibration): accepted and kept, median and max error, over 3 cm or 1.5 deg, time.
 2. ICP (2D point-to-line): Intel lab corrected log, scans k -> k+5 overlapping >= 50 % at the
    reference, started 10 cm / 3 degrees off; error and time (median). Baseline: the start error.
 3. Neighbour links (RGBD/NeighborLinkRefining): wheel odometry, ICP against the previous scan and

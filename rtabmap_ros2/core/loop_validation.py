@@ -34,7 +34,7 @@ from rtabmap_ros2.core.graph import Link, LinkType, agree, agree_many, default_i
 from rtabmap_ros2.core.grid import scan_conflict
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.params import Params, RegistrationParams
-from rtabmap_ros2.core.registration import assemble_scan_map, epipolar_check, icp_2d, register
+from rtabmap_ros2.core.registration import assemble_scan_map, epipolar_check, icp_2d, register, uses_pnp
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.statistics import Statistics
 
@@ -109,7 +109,8 @@ class LoopValidator:
         """The two nodes' descriptors for PnP's guided matching: each keypoint's word's, from the
         vocabulary (the descriptor that made the word, within the NNDR test of the keypoint's own);
         None when the guided matching is off or a word is no longer in the vocabulary."""
-        if params.estimation != "pnp" or params.guided_window <= 0:
+        icp = params.icp_refine and current.scan is not None and old.scan is not None
+        if not uses_pnp(params, icp) or params.guided_window <= 0:
             return None
         vocabulary = self.memory.vocabulary
         if not (vocabulary.present(current.word_ids).all() and vocabulary.present(old.word_ids).all()):

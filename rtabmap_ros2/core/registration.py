@@ -5,12 +5,13 @@ The RGB image's visual words get a 3D position from the registered depth image
 signatures are the correspondences, and the rigid transform is estimated one of two ways
 (``registration.estimation``, RTAB-Map's Vis/EstimationType):
 
-* ``pnp`` (RTAB-Map's default, 1; :func:`register_pnp`): the 3D words of one node against the 2D
+* ``pnp`` (RTAB-Map's default, 1; :func:`register_pnp`; ``auto`` in 6 DoF): the 3D words of one node against the 2D
   keypoints of the other, RANSAC on the reprojection error in pixels (``cv2.solvePnPRansac``),
   refined on the inliers of both directions (each node's words, from its own depth, reprojected in
   the other's image: a two-view bundle adjustment of the pose), optionally with more matches found
   around where the first estimate projects the keypoints (``guided_window``);
-* ``3d`` (the 2014 paper's, 0): RANSAC on the 3D-3D correspondences (Kabsch / Umeyama without
+* ``3d`` (the 2014 paper's, 0; ``auto`` when planar with laser scans, ICP then deciding x, y and
+  yaw): RANSAC on the 3D-3D correspondences (Kabsch / Umeyama without
   scale on 3 samples, every hypothesis scored against all correspondences, all hypotheses batched
   in numpy), refit by reweighted least squares.
 
@@ -359,20 +360,32 @@ def register(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
             (M,D), binary uint8), for the PnP's guided matching (``params.guided_window``); None
             = the shared words only.
 
+    The estimate (``params.estimation``, :func:`uses_pnp`): PnP, or the 3D-3D RANSAC (without a
+    camera model too); with laser scans on both nodes and ``icp_refine``, then 2D ICP.
+
     Returns:
         :class:`Registration` with ``T_from_to`` (``from_points ≈ T_from_to @ to_points``).
 
     Raises:
         RegistrationError: fewer than ``params.min_inliers`` inliers, or ICP refinement rejected.
     """
-    if params.estimation == "pnp" and from_sig.camera is not None and to_sig.camera is not None:
+    icp = params.icp_refine and from_sig.scan is not None and to_sig.scan is not None
+    if uses_pnp(params, icp) and from_sig.camera is not None and to_sig.camera is not None:
         # Loop closure transform by PnP (RTAB-Map's Vis/EstimationType 1).
         result = register_pnp(from_sig, to_sig, params, descriptors)
     else:
         result = _register_3d(from_sig, to_sig, params, rng)
-    if params.icp_refine and from_sig.scan is not None and to_sig.scan is not None:
+    if icp:
         result = _refine_with_icp(from_sig, to_sig, result, params)
     return result
+
+
+def uses_pnp(params: RegistrationParams, icp_refined: bool) -> bool:
+    """Whether the visual estimate is PnP: ``estimation`` pnp, or auto unless the robot is planar and
+    2D ICP refines the estimate (the 2014 paper's RANSAC on 3D words then ICP)."""
+    if params.estimation == "auto":
+        return not (params.planar and icp_refined)
+    return params.estimation == "pnp"
 
 
 def _register_3d(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
@@ -967,4 +980,4 @@ def refine_neighbor_link(scan_map: np.ndarray, new_scan: LaserScan, T_odom: np.n
 
 
 __all__ = ["Registration", "assemble_scan_map", "correspondences", "icp_2d", "kabsch", "pnp_ransac", "ransac_rigid",
-           "refine_neighbor_link", "register", "register_pnp", "words_3d"]
+           "refine_neighbor_link", "register", "register_pnp", "uses_pnp", "words_3d"]

@@ -333,3 +333,23 @@ def test_pnp_uses_the_node_with_more_depth_and_rejects_too_few_inliers(rng):
     b.points3d[:] = np.nan
     with pytest.raises(RegistrationError, match="with depth"):
         register(a, b, RegistrationParams(planar=False, icp_refine=False))
+
+
+def test_auto_estimation_is_pnp_in_6dof_and_the_papers_ransac_under_planar_icp():
+    """``estimation: auto``: PnP for a camera in 6 DoF (and planar without scans to refine on); the
+    2014 paper's RANSAC on 3D words when 2D ICP on the laser scans decides x, y and yaw anyway."""
+    from rtabmap_ros2.core.params import Params as AllParams
+    from rtabmap_ros2.core.registration import uses_pnp
+
+    auto = RegistrationParams()
+    assert auto.estimation == "auto"
+    assert uses_pnp(replace(auto, planar=False), icp_refined=True)
+    assert uses_pnp(replace(auto, planar=True), icp_refined=False)
+    assert not uses_pnp(replace(auto, planar=True), icp_refined=True)
+    assert uses_pnp(replace(auto, estimation="pnp", planar=True), icp_refined=True)
+    assert not uses_pnp(replace(auto, estimation="3d", planar=False), icp_refined=False)
+    # RTAB-Map's names: Vis/EstimationType 0 / 1, and one it has that we do not.
+    assert AllParams().with_overrides(["Vis/EstimationType=1"]).registration.estimation == "pnp"
+    assert AllParams().with_overrides(["Vis/EstimationType=0"]).registration.estimation == "3d"
+    with pytest.raises(Exception, match="estimation"):
+        AllParams().with_overrides(["Vis/EstimationType=2"])
