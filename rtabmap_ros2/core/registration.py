@@ -5,8 +5,9 @@ The RGB image's visual words get a 3D position from the registered depth image
 signatures are the correspondences, and the rigid transform is estimated one of two ways
 (``registration.estimation``, RTAB-Map's Vis/EstimationType):
 
-* ``pnp`` (RTAB-Map's default, 1; :func:`register_pnp`; ``auto`` in 6 DoF): the 3D words of one node against the 2D
-  keypoints of the other, RANSAC on the reprojection error in pixels (``cv2.solvePnPRansac``),
+* ``pnp`` (RTAB-Map's default, 1; :func:`register_pnp`; ``auto`` in 6 DoF): the 3D words of one
+  node against the 2D keypoints of the other, RANSAC on the reprojection error in pixels
+  (``cv2.solvePnPRansac``),
   refined on the inliers of both directions (each node's words, from its own depth, reprojected in
   the other's image: a two-view bundle adjustment of the pose), optionally with more matches found
   around where the first estimate projects the keypoints (``guided_window``);
@@ -61,9 +62,9 @@ MIN_ROTATION_VARIANCE = 1e-4  # rad^2
 # pose fits exactly whatever they are).
 PNP_CONFIDENCE = 0.99
 PNP_MIN_PAIRS = 6
-# PnP RANSAC's minimal solver: AP3P (4 pairs a hypothesis) took a third of the time of RTAB-Map's
-# default iterative solver (Vis/PnPFlags 0) on the loop pairs of bench/bench_registration.py, for the
-# same accepted pairs within noise; the refinement below fits all the inliers anyway.
+# PnP RANSAC's minimal solver: AP3P (4 pairs a hypothesis) took a third to a half of the time of
+# RTAB-Map's default iterative solver (Vis/PnPFlags 0) on the loop pairs of bench/bench_registration.py
+# (a scratch comparison), accepting the same pairs but one; the refinement below fits all the inliers.
 PNP_RANSAC_SOLVER = cv2.SOLVEPNP_AP3P
 # PnP refinement: Gauss-Newton steps per refinement iteration (the Huber weights make it converge
 # linearly, ~3x per step), Huber threshold as a ratio of the inlier reprojection error (pixels beyond
