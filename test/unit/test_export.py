@@ -17,11 +17,15 @@ from rtabmap_ros2.io.trajectory import read_tum
 from test_global_map import make_database
 
 
+# make_database's robot moves on a plane (its poses x, y, yaw): exported as such.
+PLANAR = Params().with_value("registration.planar", True)
+
+
 @pytest.fixture
 def exported(tmp_path, rng):
     gt, loops = make_database(tmp_path / "map.db", rng)
     before = (tmp_path / "map.db").read_bytes()
-    summary = export_global_map(tmp_path / "map.db", tmp_path / "out", Params())
+    summary = export_global_map(tmp_path / "map.db", tmp_path / "out", PLANAR)
     return tmp_path, gt, loops, before, summary
 
 
