@@ -607,6 +607,37 @@ class _TfTree:
         return transforms.inverse(up_target[common]) @ up_source[common]
 
 
+@dataclass(frozen=True)
+class Mount:
+    """Where a sensor's mount (``base_frame`` -> ``sensor_frame``) came from: ``kind`` is
+    ``tf_static`` (the bag's /tf_static links the frames), ``same_frame`` (the sensor's frame is the
+    base: identity), ``argument`` (given to BagDataset) or ``fallback`` (none of these: the fallback
+    transform, e.g. ``map``'s ``base_to_camera``)."""
+
+    kind: str
+    base_frame: str
+    sensor_frame: str
+
+
+@dataclass(frozen=True)
+class BagRead:
+    """What the last full iteration of a bag did.
+
+    Attributes:
+        synchronised: complete synchronised sets, before the detection rate's limit.
+        rate_limited: sets dropped by the detection rate (``sync.rate_hz``).
+        frames: sets turned into frames (after the rate limit, bad messages skipped).
+        bad: sets skipped for a bad message (each logged as a warning).
+        dropped: the synchroniser's other drops (``queue_full``, ``late``, ``unmatched``).
+    """
+
+    synchronised: int
+    rate_limited: int
+    frames: int
+    bad: int
+    dropped: dict[str, int]
+
+
 @dataclass
 class _Raw:
     """A deserialised message waiting in the synchroniser (converted only if its set is emitted)."""
@@ -655,6 +686,10 @@ class BagDataset:
         self._fallback_laser = DEFAULT_T_BASE_LASER if fallback_T_base_laser is None else np.asarray(
             fallback_T_base_laser, dtype=np.float64)
         self._len: Optional[int] = None
+        # Filled while iterating: where each sensor's mount came from (first frame), what the
+        # last full iteration did.
+        self.mounts: dict[str, Mount] = {}
+        self.last_read: Optional[BagRead] = None
         reader = _open_reader(self.path)
         try:
             available = {name: info.msgtype for name, info in reader.topics.items()}
@@ -717,15 +752,18 @@ class BagDataset:
             except Exception as exc:
                 logger.warning("bag %s: skipping an unreadable /tf_static message: %s", self.path, exc)
 
-    def _sensor_transform(self, frame_id: str, explicit: Optional[np.ndarray], default: np.ndarray,
+    def _sensor_transform(self, sensor: str, frame_id: str, explicit: Optional[np.ndarray], default: np.ndarray,
                           base_frame: str) -> np.ndarray:
-        if explicit is not None:
-            return explicit
-        if frame_id:
+        """base -> sensor transform of ``sensor`` ("camera", "laser"); where it came from is kept in
+        :attr:`mounts` (the first frame's)."""
+        T, kind = explicit, "argument"
+        if T is None and frame_id:
             T = self.tf.lookup(base_frame, frame_id)
-            if T is not None:
-                return T
-        return np.array(default)
+            kind = "same_frame" if frame_id.lstrip("/") == base_frame.lstrip("/") else "tf_static"
+        if T is None:
+            T, kind = np.array(default), "fallback"
+        self.mounts.setdefault(sensor, Mount(kind, base_frame, frame_id))
+        return T
 
     def __len__(self) -> int:
         """Frames in the bag: synchronised sets, counted without decoding their images (a set
@@ -748,13 +786,17 @@ class BagDataset:
 
     def _frames(self, reader) -> Iterator[SensorFrame]:
         state = {"camera_info": None, "base_frame": self._base_frame}
-        count = 0
+        count = sets = 0
         for synced in self._synced(reader, state):
+            sets += 1
             frame = self._frame(synced, state)
             if frame is not None:
                 count += 1
                 yield frame
         self._len = count
+        dropped = dict(state.get("dropped", {}))
+        rate_limited = dropped.pop("rate_limited", 0)
+        self.last_read = BagRead(sets + rate_limited, rate_limited, count, sets - count, dropped)
 
     def _synced(self, reader, state: dict) -> Iterator[SyncedSet]:
         """The bag's synchronised message sets in order (camera_info kept in ``state``)."""
@@ -783,6 +825,7 @@ class BagDataset:
             yield from synchronizer.add(stream, stamp_ns, item)
         if synchronizer is not None:
             yield from synchronizer.flush()
+            state["dropped"] = dict(synchronizer.dropped)
             if any(synchronizer.dropped.values()) or synchronizer.resets:
                 logger.debug("bag %s: synchroniser dropped %s, resets %d", self.path,
                              synchronizer.dropped, synchronizer.resets)
@@ -802,8 +845,8 @@ class BagDataset:
             scan = synced.values.get("scan")
             if scan is not None:
                 current = scan
-                T = self._sensor_transform(scan.msg.header.frame_id, self._T_base_laser, self._fallback_laser,
-                                           base_frame)
+                T = self._sensor_transform("laser", scan.msg.header.frame_id, self._T_base_laser,
+                                           self._fallback_laser, base_frame)
                 frame.scan = scan_from_msg(scan.msg, T)
             rgb = synced.values.get("rgb")
             if rgb is not None:
@@ -825,8 +868,8 @@ class BagDataset:
                 else:
                     current = info
                     image_frame_id = (rgb or depth).msg.header.frame_id or info.msg.header.frame_id
-                    T = self._sensor_transform(image_frame_id, self._T_base_camera, self._fallback_camera,
-                                               base_frame)
+                    T = self._sensor_transform("camera", image_frame_id, self._T_base_camera,
+                                               self._fallback_camera, base_frame)
                     frame.camera = camera_info_from_msg(info.msg, T)
             register_to_rgb(frame).validate(self.sync)
         except (SensorDataError, ValueError) as exc:
