@@ -121,7 +121,7 @@ class GridAccumulator:
             return
         origins = np.broadcast_to(cells.origin_xy, ends.shape)
         is_hit = np.arange(len(ends)) < len(cells.obstacles_xy)
-        self._add_beams(origins, ends, is_hit, weight, free_ends=~is_hit)
+        self._add_beams(origins, ends, is_hit, weight, free_ends=~is_hit, once_per_cell=True)
 
     @property
     def observed(self) -> bool:
@@ -129,10 +129,15 @@ class GridAccumulator:
         return bool(((self._hits + self._misses) > 0).any())
 
     def _add_beams(self, origin_pts: np.ndarray, end_pts: np.ndarray, is_hit: np.ndarray, weight: int,
-                   free_ends: np.ndarray | None = None) -> None:
+                   free_ends: np.ndarray | None = None, once_per_cell: bool = False) -> None:
         """Ray-cast beams (origins and ends (N,2), map frame, m): a hit on the end cell of every
         beam with ``is_hit``, a miss on each cell crossed before the end, and a miss on the end cell
-        of every beam with ``free_ends`` (ground seen there)."""
+        of every beam with ``free_ends`` (ground seen there).
+
+        ``once_per_cell`` (a depth image: thousands of beams fan out from one camera): one miss per
+        cell however many beams cross it, and none on a cell the same beams hit, so that a view
+        counts once for or against a cell, as a laser scan's sparse beams do.
+        """
         res = self.resolution
         if not len(end_pts):
             return
@@ -158,8 +163,12 @@ class GridAccumulator:
         misses = self._misses.reshape(-1)
         # Hits: the end cell of every beam with a return.
         hits += weight * np.bincount(end_cells[is_hit], minlength=hits.size).astype(np.int32)
+        crossed = np.zeros(misses.size, bool) if once_per_cell else None
         if free_ends is not None:
-            misses += weight * np.bincount(end_cells[free_ends], minlength=misses.size).astype(np.int32)
+            if crossed is not None:
+                crossed[end_cells[free_ends]] = True
+            else:
+                misses += weight * np.bincount(end_cells[free_ends], minlength=misses.size).astype(np.int32)
         # Misses: cells crossed by each beam before its end (ray casting, SAMPLES_PER_CELL per cell),
         # in chunks of about MAX_SAMPLES_PER_CHUNK samples (bounded memory).
         vec = end_pts - origin_pts
@@ -167,8 +176,15 @@ class GridAccumulator:
         chunk_of = np.cumsum(n_samples) // MAX_SAMPLES_PER_CHUNK
         bounds = np.flatnonzero(np.diff(chunk_of)) + 1
         for lo_b, hi_b in zip(np.r_[0, bounds], np.r_[bounds, len(vec)]):
-            _cast_misses(origin_pts[lo_b:hi_b], vec[lo_b:hi_b], n_samples[lo_b:hi_b], end_cells[lo_b:hi_b],
-                         flat, misses, weight)
+            cells = _crossed_cells(origin_pts[lo_b:hi_b], vec[lo_b:hi_b], n_samples[lo_b:hi_b],
+                                   end_cells[lo_b:hi_b], flat)
+            if crossed is not None:
+                crossed[cells] = True
+            else:
+                misses += weight * np.bincount(cells, minlength=misses.size).astype(np.int32)
+        if crossed is not None:
+            crossed[end_cells[is_hit]] = False
+            misses += weight * crossed.astype(np.int32)
 
     def _ensure(self, lo_cell: np.ndarray, hi_cell: np.ndarray) -> None:
         """Grow the canvas (with slack, so growth is rare) to hold cells lo_cell..hi_cell."""
@@ -387,12 +403,13 @@ def _dilated(cells: np.ndarray) -> np.ndarray:
     return out
 
 
-def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, end_cells: np.ndarray,
-                 flat, miss_count: np.ndarray, weight: int = 1) -> None:
-    """Add ``weight`` misses per cell crossed by each beam before its end cell (ray casting)."""
+def _crossed_cells(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, end_cells: np.ndarray,
+                   flat) -> np.ndarray:
+    """Flat indices of the cells each beam crosses before its end cell, once per (beam, cell)
+    (ray casting; a cell crossed by two beams is listed twice)."""
     total = int(n_samples.sum())
     if not total:
-        return
+        return np.zeros(0, np.int64)
     beam, samples = _beam_samples(origins, vec, n_samples)
     cells = flat(samples)
     # One miss per (beam, cell) and never on the beam's own end cell. A segment crosses each
@@ -401,7 +418,7 @@ def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, en
     first = np.ones(total, bool)
     first[1:] = (cells[1:] != cells[:-1]) | (beam[1:] != beam[:-1])
     keep = first & (cells != end_cells[beam])
-    miss_count += weight * np.bincount(cells[keep], minlength=miss_count.size).astype(np.int32)
+    return cells[keep]
 
 
 def _samples_per_beam(vec: np.ndarray, cell: float) -> np.ndarray:
