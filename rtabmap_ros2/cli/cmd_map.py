@@ -96,10 +96,21 @@ class SessionSummary:
                 + (f", {self.skipped} bad frames skipped" if self.skipped else ""))
 
 
+# What map --help says of the settings a camera-only or hand-held user needs (README "Hand-held
+# RGB-D camera").
+HELP_MODES = ("Planar or 6 DoF: registration.planar (Reg/Force3DoF) keeps x, y and yaw only; the shipped "
+              "config sets it for a wheeled robot with a laser: a hand-held camera or a robot moving in 3D needs "
+              "--set Reg/Force3DoF=false (a warning says so when the odometry leaves the plane). The detection "
+              "rate (Rtabmap/DetectionRate, 1 Hz) keeps one frame per second; 0 keeps every frame. The occupancy "
+              "grid comes from each node's laser scan, else its depth image (Grid/Sensor: 0 laser, 1 depth, 2 "
+              "both). Sensor mounts come from /tf_static, else --set base_to_camera=[x,y,z,roll,pitch,yaw] / "
+              "base_to_laser=[...]. The parameters are stored in the database: export reuses them.")
+
+
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "map", help="multi-session graph SLAM on ROS 2 bags (one session per bag), offline",
-        description=__doc__.splitlines()[0])
+        description=__doc__.splitlines()[0] + " " + HELP_MODES)
     parser.add_argument("bags", nargs="+", metavar="BAG", help="ROS 2 bags (folders), processed in this order")
     parser.add_argument("--db", required=True, metavar="FILE",
                         help="map database; an existing one is continued in a new session")

@@ -336,7 +336,11 @@ class RegistrationParams:
                           "20 measured in bench/bench_registration.py to reject perceptual aliasing)")
     inlier_distance: float = _p(0.1, "RANSAC inlier threshold on 3D word positions", "m")
     ransac_iterations: int = _p(500, "RANSAC hypotheses", "iterations")
-    planar: bool = _p(False, "Robot moves on a plane: keep x, y, yaw only (Reg/Force3DoF)")
+    planar: bool = _p(
+        False, "Robot moves on a plane: registration and optimisation keep x, y and yaw only (RTAB-Map's "
+        "Reg/Force3DoF, false by default as there: 6 DoF; config/rtabmap.yaml sets it for its wheeled robot "
+        "with a laser). Applied as given whatever the sensors; when the odometry leaves the plane (0.1 m, 5 deg "
+        "from the session's first pose) a warning says so: a hand-held camera needs false")
     icp_refine: bool = _p(True, "Refine visual loop closures with 2D ICP on the laser scans")
     neighbor_link_refining: bool = _p(
         False, "Refine each neighbour link with 2D ICP of the new scan against the previous nodes' "
