@@ -16,7 +16,8 @@ def add_parser(subparsers) -> None:
                     "images with a depth image within 20 ms and ground truth at their stamp. Then: rtabmap-ros2 map "
                     "BAGDIR --db map.db --set Reg/Force3DoF=false (a hand-held camera moves in 6 DoF).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("folder", metavar="FOLDER", help="TUM RGB-D folder (rgb.txt, depth.txt, groundtruth.txt, rgb/, depth/)")
+    p.add_argument("folder", metavar="FOLDER",
+                   help="TUM RGB-D folder (rgb.txt, depth.txt, groundtruth.txt, rgb/, depth/)")
     p.add_argument("--out", metavar="BAGDIR", required=True, help="bag folder to create (must not exist)")
     p.add_argument("--camera", metavar="NAME|FX,FY,CX,CY[,K1,K2,P1,P2,K3]", default=None,
                    help="calibration: fr1, fr2, fr3 (the benchmark's Kinects), ros (525, 525, 319.5, 239.5), or "

@@ -54,8 +54,8 @@ GROUND_TRUTH_MAX_GAP_S = 0.1
 # The odometry message's covariance: the error the drift adds in this long (the default detection
 # period, the length of a link between two nodes at 1 Hz).
 ODOM_COVARIANCE_PERIOD_S = 1.0
-# Depth encodings of /depth/image (write_bag's depth_format).
-DEPTH_ENCODINGS = {"16UC1": "raw", "32FC1": "float"}
+# /depth/image encoding -> write_bag's depth_format.
+DEPTH_FORMATS = {"16UC1": "raw", "32FC1": "float"}
 
 
 @dataclass(frozen=True)
@@ -78,8 +78,10 @@ class TumCamera:
 # The benchmark's calibrations of its three Kinects (fr3's images are already undistorted) and the
 # ROS default it recommends for the pre-registered depth.
 CAMERAS = {
-    "fr1": TumCamera(517.306408, 516.469215, 318.643040, 255.313989, (0.262383, -0.953104, -0.005358, 0.002628, 1.163314)),
-    "fr2": TumCamera(520.908620, 521.007327, 325.141442, 249.701764, (0.231222, -0.784899, -0.003257, -0.000105, 0.917205)),
+    "fr1": TumCamera(517.306408, 516.469215, 318.643040, 255.313989,
+                     (0.262383, -0.953104, -0.005358, 0.002628, 1.163314)),
+    "fr2": TumCamera(520.908620, 521.007327, 325.141442, 249.701764,
+                     (0.231222, -0.784899, -0.003257, -0.000105, 0.917205)),
     "fr3": TumCamera(535.4, 539.2, 320.1, 247.6),
     "ros": TumCamera(525.0, 525.0, 319.5, 239.5),
 }
@@ -143,8 +145,8 @@ def tum_frames(folder: Path, max_difference_s: float = TUM_MAX_DIFFERENCE_S,
         raise DatasetError(f"{folder / empty} lists nothing")
     order = np.argsort(gt_stamps, kind="stable")
     gt_stamps, gt_poses = gt_stamps[order], gt_poses[order]
-    pairs = associate(np.array([t for t, _, _ in rgb], dtype=np.int64), np.array([t for t, _, _ in depth], dtype=np.int64),
-                      int(round(max_difference_s * NS_PER_S)))
+    pairs = associate(np.array([t for t, _, _ in rgb], dtype=np.int64),
+                      np.array([t for t, _, _ in depth], dtype=np.int64), int(round(max_difference_s * NS_PER_S)))
     T_camera_base = transforms.inverse(T_base_camera)
     frames, no_truth = [], 0
     for i, j in pairs:
@@ -238,8 +240,8 @@ def read_depth_m(path: Path, size: tuple[int, int], depth_scale: float = TUM_DEP
         raise DatasetError(f"depth image {path} is {raw.dtype} with shape {raw.shape}: a TUM depth image is 16-bit "
                            f"single channel, {depth_scale:g} per metre")
     if (raw.shape[1], raw.shape[0]) != size:
-        raise DatasetError(f"depth image {path} is {raw.shape[1]}x{raw.shape[0]}, its colour image {size[0]}x{size[1]}: "
-                           "TUM depth is registered pixel for pixel to the colour image")
+        raise DatasetError(f"depth image {path} is {raw.shape[1]}x{raw.shape[0]}, its colour image "
+                           f"{size[0]}x{size[1]}: TUM depth is registered pixel for pixel to the colour image")
     depth = raw.astype(np.float32) / np.float32(depth_scale)
     depth[raw == 0] = np.nan
     return depth
@@ -290,8 +292,8 @@ def tum_to_bag(folder, out, camera: Optional[TumCamera] = None, depth_encoding: 
             size), a bad option.
     """
     folder = Path(folder)
-    if depth_encoding not in DEPTH_ENCODINGS:
-        raise DatasetError(f"depth encoding {depth_encoding!r}: choose {' or '.join(DEPTH_ENCODINGS)}")
+    if depth_encoding not in DEPTH_FORMATS:
+        raise DatasetError(f"depth encoding {depth_encoding!r}: choose {' or '.join(DEPTH_FORMATS)}")
     if not (drift_yaw_deg_s >= 0 and drift_m_s >= 0 and math.isfinite(drift_yaw_deg_s) and math.isfinite(drift_m_s)):
         raise DatasetError(f"odometry drift must be finite and >= 0 (got {drift_yaw_deg_s} deg/s, {drift_m_s} m/s)")
     if camera is None:
@@ -304,7 +306,7 @@ def tum_to_bag(folder, out, camera: Optional[TumCamera] = None, depth_encoding: 
     odom, covariance = drifting_odometry(stamps, truth, drift_yaw_deg_s, drift_m_s, np.random.default_rng(seed))
     undistort = _Undistorter(camera) if rectify else None
     bag_path = write_bag(out, _sensor_frames(frames, odom, covariance, camera, undistort), topics=topics,
-                         storage=storage, depth_format=DEPTH_ENCODINGS[depth_encoding],
+                         storage=storage, depth_format=DEPTH_FORMATS[depth_encoding],
                          camera_distortion=None if rectify else camera.distortion)
     gt_path = bag_path / GROUND_TRUTH_NAME
     write_tum(gt_path, stamps, truth, "timestamp tx ty tz qx qy qz qw (T_world_base: base_link, the camera body, "
