@@ -28,6 +28,7 @@ from rtabmap_ros2.errors import ParameterError
 HALF_PI = math.pi / 2
 NODE_QOS = ("auto", "reliable", "sensor_data")
 NODE_IMAGE_TRANSPORTS = ("auto", "raw", "compressed")
+GRID_SENSORS = ("auto", "laser", "depth", "both")
 
 
 def _p(default: Any, doc: str, unit: str = "") -> Any:
@@ -335,7 +336,11 @@ class RegistrationParams:
                           "20 measured in bench/bench_registration.py to reject perceptual aliasing)")
     inlier_distance: float = _p(0.1, "RANSAC inlier threshold on 3D word positions", "m")
     ransac_iterations: int = _p(500, "RANSAC hypotheses", "iterations")
-    planar: bool = _p(True, "Robot moves on a plane: keep x, y, yaw only (Reg/Force3DoF)")
+    planar: bool = _p(
+        False, "Robot moves on a plane: registration and optimisation keep x, y and yaw only (RTAB-Map's "
+        "Reg/Force3DoF, false by default as there: 6 DoF; config/rtabmap.yaml sets it for its wheeled robot "
+        "with a laser). Applied as given whatever the sensors; when the odometry leaves the plane (0.1 m, 5 deg "
+        "from the session's first pose) a warning says so: a hand-held camera needs false")
     icp_refine: bool = _p(True, "Refine visual loop closures with 2D ICP on the laser scans")
     neighbor_link_refining: bool = _p(
         False, "Refine each neighbour link with 2D ICP of the new scan against the previous nodes' "
@@ -449,15 +454,51 @@ class GridParams:
     range_max: float = _p(
         5.0, "Use laser returns up to this range, and clear free space up to it along beams with no "
         "return (0 = the scan's range_max; RTAB-Map's Grid/RangeMax default: farther returns are "
-        "noisier and cost ray casting time)", "m")
+        "noisier and cost ray casting time); depth grid: depth points up to this depth (RTAB-Map's Grid/RangeMax, "
+        "for both)", "m")
     cloud_voxel_size: float = _p(0.05, "Voxel size of the assembled RGB-D point cloud", "m")
     cloud_decimation: int = _p(4, "Use every n-th depth pixel in each direction for the point cloud", "px")
+    sensor: str = _p(
+        "auto", "What the occupancy grid is made from (RTAB-Map's Grid/Sensor: 0 laser, 1 depth, 2 both; "
+        "Grid/FromDepth): laser (the nodes' laser scans), depth (the points of their depth images), both, or "
+        "auto (each node's laser scan when it has one, else its depth image: a laser robot's map is its "
+        "laser's, a camera-only map its depth images'; RTAB-Map's own default is depth)")
+    depth_decimation: int = _p(
+        4, "Depth grid: use every n-th depth pixel in each direction (RTAB-Map's Grid/DepthDecimation)", "px")
+    max_ground_height: float = _p(
+        0.0, "Depth grid: points at or below this height (z in the map frame) are ground, free cells; above "
+        "it, obstacles (RTAB-Map's Grid/MaxGroundHeight; 0 = grid.resolution, as RTAB-Map without its normals "
+        "segmentation, which this grid does not do). Heights are map-frame z (RTAB-Map's "
+        "Grid/MapFrameProjection): the map frame is the root node's odometry frame, whose origin a wheeled "
+        "robot's base starts on the floor at, and a recording with odometry in a room frame (motion capture, "
+        "tum2bag) has its floor at 0", "m")
+    min_ground_height: float = _p(
+        0.0, "Depth grid: points below this height are dropped (noise under the floor; RTAB-Map's "
+        "Grid/MinGroundHeight; 0 = no limit)", "m")
+    max_obstacle_height: float = _p(
+        0.0, "Depth grid: points above this height are dropped (a ceiling, a table top the robot passes under; "
+        "RTAB-Map's Grid/MaxObstacleHeight; 0 = no limit)", "m")
 
     def __post_init__(self) -> None:
         _check(self.resolution > 0, "grid.resolution", self.resolution, "> 0")
         _check(self.range_max >= 0, "grid.range_max", self.range_max, ">= 0")
+        _check(self.sensor in GRID_SENSORS, "grid.sensor", self.sensor, " or ".join(GRID_SENSORS))
+        _check(self.depth_decimation >= 1, "grid.depth_decimation", self.depth_decimation, ">= 1")
+        _check(self.max_ground_height >= 0, "grid.max_ground_height", self.max_ground_height, ">= 0")
+        _check(self.max_obstacle_height == 0 or self.max_obstacle_height > self.ground_height,
+               "grid.max_obstacle_height", self.max_obstacle_height,
+               f"0 (no limit) or above the ground height {self.ground_height} m")
+        _check(self.min_ground_height == 0 or self.min_ground_height < self.ground_height,
+               "grid.min_ground_height", self.min_ground_height,
+               f"0 (no limit) or below the ground height {self.ground_height} m")
         _check(self.cloud_voxel_size > 0, "grid.cloud_voxel_size", self.cloud_voxel_size, "> 0")
         _check(self.cloud_decimation >= 1, "grid.cloud_decimation", self.cloud_decimation, ">= 1")
+
+    @property
+    def ground_height(self) -> float:
+        """Height (m, map-frame z) up to which depth points are ground: max_ground_height, or the
+        cell size when it is 0 (RTAB-Map's passthrough segmentation)."""
+        return self.max_ground_height if self.max_ground_height > 0 else self.resolution
 
 
 @dataclass(frozen=True)
@@ -676,6 +717,12 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "RGBD/NewMapOdomChangeDistance": ("graph.odom_reset_jump", float),
     "Grid/CellSize": ("grid.resolution", float),
     "Grid/RangeMax": ("grid.range_max", float),
+    "Grid/Sensor": ("grid.sensor", lambda v: _GRID_SENSORS.get(int(v), f"Grid/Sensor {v}")),
+    "Grid/FromDepth": ("grid.sensor", lambda v: "depth" if _to_bool("Grid/FromDepth", v) else "laser"),
+    "Grid/DepthDecimation": ("grid.depth_decimation", int),
+    "Grid/MaxGroundHeight": ("grid.max_ground_height", float),
+    "Grid/MinGroundHeight": ("grid.min_ground_height", float),
+    "Grid/MaxObstacleHeight": ("grid.max_obstacle_height", float),
     "Rtabmap/DetectionRate": ("sync.rate_hz", float),
     # The node's historical names for synchroniser settings (rtabmap_ros uses these).
     "detection_rate": ("sync.rate_hz", float),
@@ -687,6 +734,8 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
 # Kp/NNStrategy values with an equivalent here (RTAB-Map: 0 linear FLANN and 3-4 brute force, exact;
 # 1 FLANN kd-trees; 2 LSH, not available).
 _NN_STRATEGIES = {0: "flat", 1: "kdtree", 3: "flat", 4: "flat"}
+# Grid/Sensor values (RTAB-Map: 0 laser scan, 1 depth images, 2 both).
+_GRID_SENSORS = {0: "laser", 1: "depth", 2: "both"}
 # Kp/DetectorStrategy values with an equivalent here (RTAB-Map: 2=ORB, 1=SIFT, 8=GFTT/ORB).
 _DETECTOR_STRATEGIES = {2: "orb", 1: "sift", 8: "gftt_orb"}
 
