@@ -142,6 +142,23 @@ def test_optimizers_agree(rng, optimizer):
     assert result.chi2_final < result.chi2_initial
 
 
+def test_dogleg_hands_over_to_lm_where_the_gauss_newton_system_is_singular():
+    """A node whose only link carries no yaw information: Gauss-Newton's system is singular there
+    (gn fails); dogleg goes on with Levenberg-Marquardt and reaches LM's optimum."""
+    step = transforms.from_xy_yaw(1.0, 0.0, 0.1)
+    poses = {i: transforms.from_xy_yaw(float(i), 0.05 * i, 0.0) for i in range(6)}
+    links = [Link(i, i + 1, LinkType.NEIGHBOR, step, default_information(1e-2)) for i in range(4)]
+    links.append(Link(2, 4, LinkType.LOOP_INTRA, transforms.from_xy_yaw(2.0, 0.1, 0.2), default_information(1e-2)))
+    links.append(Link(4, 5, LinkType.NEIGHBOR, step, np.diag([100.0, 100, 100, 100, 100, 0])))
+    with pytest.raises(OptimizationError, match="Indeterminate"):
+        optimize(poses, links, 0, GraphParams(optimizer="gn", robust=False), planar=True)
+    lm = optimize(poses, links, 0, PLAIN, planar=True)
+    dogleg = optimize(poses, links, 0, GraphParams(optimizer="dogleg", robust=False), planar=True)
+    assert dogleg.chi2_final == pytest.approx(lm.chi2_final, rel=1e-6)
+    assert dogleg.chi2_final < 1e-2 * dogleg.chi2_initial
+    assert np.allclose(dogleg.poses[0], poses[0], atol=1e-6)
+
+
 def test_pose3_information_reordering():
     # Two measurements of node 2's position from node 1 that disagree in z and in x. The first is
     # precise in z only, the second precise in x only: the solution takes z from the first, x from the second.
