@@ -133,13 +133,24 @@ def test_loop_closures_rejected_before_start_out_and_true_ones_come_back(rng):
     assert max(np.linalg.norm(back.poses[k][:3, 3] - first.poses[k][:3, 3]) for k in odom) < 1e-3
 
 
-@pytest.mark.parametrize("optimizer", ["lm", "gn", "dogleg"])
+@pytest.mark.parametrize("optimizer", ["lm", "gn", "dogleg", "auto"])
 def test_optimizers_agree(rng, optimizer):
     truth, odom, links = _square_loop_graph(rng)
     result = optimize(odom, links, max(odom), GraphParams(optimizer=optimizer, robust=False), planar=True)
     reference = optimize(odom, links, max(odom), PLAIN, planar=True)
     assert result.chi2_final == pytest.approx(reference.chi2_final, rel=1e-3)
     assert result.chi2_final < result.chi2_initial
+
+
+def test_auto_is_lm_itself_where_lms_damping_works(shared_data):
+    """intel.g2o: LM never fails a damping after its first iteration, so ``auto`` stays LM: the
+    same iterations and the same poses."""
+    poses, links, planar = read_g2o(shared_data / "posegraphs" / "intel.g2o")
+    root = min(poses)
+    lm = optimize(poses, links, root, PLAIN, planar, cache=False)
+    auto = optimize(poses, links, root, GraphParams(optimizer="auto", robust=False), planar, cache=False)
+    assert auto.iterations == lm.iterations
+    assert max(np.abs(auto.poses[k] - lm.poses[k]).max() for k in poses) < 1e-12
 
 
 def test_dogleg_hands_over_to_lm_where_the_gauss_newton_system_is_singular():
