@@ -28,6 +28,7 @@ from rtabmap_ros2.errors import ParameterError
 HALF_PI = math.pi / 2
 NODE_QOS = ("auto", "reliable", "sensor_data")
 NODE_IMAGE_TRANSPORTS = ("auto", "raw", "compressed")
+GRID_SENSORS = ("auto", "laser", "depth", "both")
 
 
 def _p(default: Any, doc: str, unit: str = "") -> Any:
@@ -362,7 +363,11 @@ class RegistrationParams:
         "Vis/CorGuessWinSize, here with the first estimate as the guess; 0 = the shared words only, as "
         "RTAB-Map's loop closures). On the 24 real TUM loop pairs 16 accepted instead of 9, as near the "
         "images' own optimum (bench/bench_registration.py)", "px")
-    planar: bool = _p(True, "Robot moves on a plane: keep x, y, yaw only (Reg/Force3DoF)")
+    planar: bool = _p(
+        False, "Robot moves on a plane: registration and optimisation keep x, y and yaw only (RTAB-Map's "
+        "Reg/Force3DoF, false by default as there: 6 DoF; config/rtabmap.yaml sets it for its wheeled robot "
+        "with a laser). Applied as given whatever the sensors; when the odometry leaves the plane (0.1 m, 5 deg "
+        "from the session's first pose) a warning says so: a hand-held camera needs false")
     icp_refine: bool = _p(True, "Refine visual loop closures with 2D ICP on the laser scans")
     neighbor_link_refining: bool = _p(
         False, "Refine each neighbour link with 2D ICP of the new scan against the previous nodes' "
@@ -408,7 +413,9 @@ class GraphParams:
     """Graph SLAM (2014 §II-B, C): optimisation and sessions."""
 
     optimizer: str = _p("lm", "Pose graph solver (gtsam): lm (Levenberg-Marquardt), gn (Gauss-Newton), "
-                        "dogleg")
+                        "dogleg (Powell's, from a wide trust region; LM where the Gauss-Newton system is singular), "
+                        "auto (LM, dogleg once LM's damping fails in two iterations running: the default of "
+                        "rtabmap-ros2 optimize)")
     iterations: int = _p(100, "Maximum optimiser iterations", "iterations")
     robust: bool = _p(True, "Dynamic covariance scaling on loop closures; drop those it rejects")
     robust_reject_scale: float = _p(
@@ -460,7 +467,8 @@ class GraphParams:
                                       "m^2, rad^2")
 
     def __post_init__(self) -> None:
-        _check(self.optimizer in ("lm", "gn", "dogleg"), "graph.optimizer", self.optimizer, "lm, gn or dogleg")
+        _check(self.optimizer in ("lm", "gn", "dogleg", "auto"), "graph.optimizer", self.optimizer,
+               "lm, gn, dogleg or auto")
         _check(self.iterations >= 1, "graph.iterations", self.iterations, ">= 1")
         _check(0.0 < self.robust_reject_scale < 1.0, "graph.robust_reject_scale", self.robust_reject_scale,
                "in (0, 1)")
@@ -483,15 +491,51 @@ class GridParams:
     range_max: float = _p(
         5.0, "Use laser returns up to this range, and clear free space up to it along beams with no "
         "return (0 = the scan's range_max; RTAB-Map's Grid/RangeMax default: farther returns are "
-        "noisier and cost ray casting time)", "m")
+        "noisier and cost ray casting time); depth grid: depth points up to this depth (RTAB-Map's Grid/RangeMax, "
+        "for both)", "m")
     cloud_voxel_size: float = _p(0.05, "Voxel size of the assembled RGB-D point cloud", "m")
     cloud_decimation: int = _p(4, "Use every n-th depth pixel in each direction for the point cloud", "px")
+    sensor: str = _p(
+        "auto", "What the occupancy grid is made from (RTAB-Map's Grid/Sensor: 0 laser, 1 depth, 2 both; "
+        "Grid/FromDepth): laser (the nodes' laser scans), depth (the points of their depth images), both, or "
+        "auto (each node's laser scan when it has one, else its depth image: a laser robot's map is its "
+        "laser's, a camera-only map its depth images'; RTAB-Map's own default is depth)")
+    depth_decimation: int = _p(
+        4, "Depth grid: use every n-th depth pixel in each direction (RTAB-Map's Grid/DepthDecimation)", "px")
+    max_ground_height: float = _p(
+        0.0, "Depth grid: points at or below this height (z in the map frame) are ground, free cells; above "
+        "it, obstacles (RTAB-Map's Grid/MaxGroundHeight; 0 = grid.resolution, as RTAB-Map without its normals "
+        "segmentation, which this grid does not do). Heights are map-frame z (RTAB-Map's "
+        "Grid/MapFrameProjection): the map frame is the root node's odometry frame, whose origin a wheeled "
+        "robot's base starts on the floor at, and a recording with odometry in a room frame (motion capture, "
+        "tum2bag) has its floor at 0", "m")
+    min_ground_height: float = _p(
+        0.0, "Depth grid: points below this height are dropped (noise under the floor; RTAB-Map's "
+        "Grid/MinGroundHeight; 0 = no limit)", "m")
+    max_obstacle_height: float = _p(
+        0.0, "Depth grid: points above this height are dropped (a ceiling, a table top the robot passes under; "
+        "RTAB-Map's Grid/MaxObstacleHeight; 0 = no limit)", "m")
 
     def __post_init__(self) -> None:
         _check(self.resolution > 0, "grid.resolution", self.resolution, "> 0")
         _check(self.range_max >= 0, "grid.range_max", self.range_max, ">= 0")
+        _check(self.sensor in GRID_SENSORS, "grid.sensor", self.sensor, " or ".join(GRID_SENSORS))
+        _check(self.depth_decimation >= 1, "grid.depth_decimation", self.depth_decimation, ">= 1")
+        _check(self.max_ground_height >= 0, "grid.max_ground_height", self.max_ground_height, ">= 0")
+        _check(self.max_obstacle_height == 0 or self.max_obstacle_height > self.ground_height,
+               "grid.max_obstacle_height", self.max_obstacle_height,
+               f"0 (no limit) or above the ground height {self.ground_height} m")
+        _check(self.min_ground_height == 0 or self.min_ground_height < self.ground_height,
+               "grid.min_ground_height", self.min_ground_height,
+               f"0 (no limit) or below the ground height {self.ground_height} m")
         _check(self.cloud_voxel_size > 0, "grid.cloud_voxel_size", self.cloud_voxel_size, "> 0")
         _check(self.cloud_decimation >= 1, "grid.cloud_decimation", self.cloud_decimation, ">= 1")
+
+    @property
+    def ground_height(self) -> float:
+        """Height (m, map-frame z) up to which depth points are ground: max_ground_height, or the
+        cell size when it is 0 (RTAB-Map's passthrough segmentation)."""
+        return self.max_ground_height if self.max_ground_height > 0 else self.resolution
 
 
 @dataclass(frozen=True)
@@ -716,6 +760,12 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "RGBD/NewMapOdomChangeDistance": ("graph.odom_reset_jump", float),
     "Grid/CellSize": ("grid.resolution", float),
     "Grid/RangeMax": ("grid.range_max", float),
+    "Grid/Sensor": ("grid.sensor", lambda v: _GRID_SENSORS.get(int(v), f"Grid/Sensor {v}")),
+    "Grid/FromDepth": ("grid.sensor", lambda v: "depth" if _to_bool("Grid/FromDepth", v) else "laser"),
+    "Grid/DepthDecimation": ("grid.depth_decimation", int),
+    "Grid/MaxGroundHeight": ("grid.max_ground_height", float),
+    "Grid/MinGroundHeight": ("grid.min_ground_height", float),
+    "Grid/MaxObstacleHeight": ("grid.max_obstacle_height", float),
     "Rtabmap/DetectionRate": ("sync.rate_hz", float),
     # The node's historical names for synchroniser settings (rtabmap_ros uses these).
     "detection_rate": ("sync.rate_hz", float),
@@ -729,6 +779,8 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
 _NN_STRATEGIES = {0: "flat", 1: "kdtree", 3: "flat", 4: "flat"}
 # Vis/EstimationType values with an equivalent here (RTAB-Map: 0 3D->3D, 1 3D->2D PnP, 2 2D->2D epipolar, absent).
 _ESTIMATION_TYPES = {0: "3d", 1: "pnp"}
+# Grid/Sensor values (RTAB-Map: 0 laser scan, 1 depth images, 2 both).
+_GRID_SENSORS = {0: "laser", 1: "depth", 2: "both"}
 # Kp/DetectorStrategy values with an equivalent here (RTAB-Map: 2=ORB, 1=SIFT, 8=GFTT/ORB).
 _DETECTOR_STRATEGIES = {2: "orb", 1: "sift", 8: "gftt_orb"}
 
