@@ -356,6 +356,13 @@ class RegistrationParams:
         True, "pnp: refine on the reprojection errors in both images (the from node's words, from its depth, "
         "in the to image and the to node's in the from image: a two-view bundle adjustment of the pose with "
         "the words held at their depth), not in the to image only (RTAB-Map's Vis/BundleAdjustment)")
+    pnp_max_variance: float = _p(
+        0.0025, "pnp: reject a loop closure whose translation variance (from the inliers' 3D residuals, as "
+        "its information matrix) is above this (RTAB-Map's Vis/PnPMaxVariance, there 0 = off). 0.0025 m^2 "
+        "(5 cm standard deviation): on the 24 real TUM loop pairs it rejects the 3 PnP estimates whose words "
+        "disagree that much (7.2, 6.7 and 2.7 cm, 2.2 to 3.3 deg off the motion capture; the graph check "
+        "cannot catch them, their covariance is as loose) and none within 3 cm / 1.5 deg; the accepted "
+        "ones on fr1_xyz have 1.0-1.3 cm (bench/bench_registration.py). 0 = off", "m^2")
     guided_window: float = _p(
         10.0, "pnp: after a first estimate from the shared words (8 inliers or more), match every keypoint "
         "with depth to the keypoints of the other image within this distance of where the estimate projects "
@@ -395,6 +402,7 @@ class RegistrationParams:
                "> 0")
         _check(self.pnp_refine_iterations >= 0, "registration.pnp_refine_iterations", self.pnp_refine_iterations,
                ">= 0")
+        _check(self.pnp_max_variance >= 0, "registration.pnp_max_variance", self.pnp_max_variance, ">= 0")
         _check(self.guided_window >= 0, "registration.guided_window", self.guided_window, ">= 0")
         _check(self.icp_max_correspondence_distance > 0, "registration.icp_max_correspondence_distance",
                self.icp_max_correspondence_distance, "> 0")
@@ -747,6 +755,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
                            lambda v: _ESTIMATION_TYPES.get(int(v), f"Vis/EstimationType {v}")),
     "Vis/PnPReprojError": ("registration.pnp_reprojection_error", float),
     "Vis/PnPRefineIterations": ("registration.pnp_refine_iterations", int),
+    "Vis/PnPMaxVariance": ("registration.pnp_max_variance", float),
     "Vis/BundleAdjustment": ("registration.bundle_adjustment", lambda v: int(v) > 0),
     "Vis/CorGuessWinSize": ("registration.guided_window", float),
     "Reg/Force3DoF": ("registration.planar", lambda v: _to_bool("Reg/Force3DoF", v)),

@@ -468,12 +468,14 @@ def register_pnp(from_sig: Signature, to_sig: Signature, params: RegistrationPar
     3. with ``guided_window`` and descriptors: every keypoint with depth matched in a window around
        its projection, then 1-2 again on these matches;
     4. the inlier count against ``min_inliers``; the information matrix from the inliers' 3D
-       residuals (both nodes' depths, RTAB-Map's PnP variance) or their reprojection errors.
+       residuals (both nodes' depths, RTAB-Map's PnP variance) or their reprojection errors, its
+       translation variance against ``pnp_max_variance``.
 
     Args and returns: see :func:`register` (``descriptors`` index like the signatures' keypoints).
 
     Raises:
-        RegistrationError: too few pairs, RANSAC found no pose, or fewer than ``min_inliers`` inliers.
+        RegistrationError: too few pairs, RANSAC found no pose, fewer than ``min_inliers`` inliers,
+            or a translation variance above ``pnp_max_variance``.
     """
     cam_from, cam_to = from_sig.camera, to_sig.camera
     i_from, i_to = word_pairs(from_sig, to_sig)
@@ -495,6 +497,13 @@ def register_pnp(from_sig: Signature, to_sig: Signature, params: RegistrationPar
     if params.planar:
         T = transforms.project_planar(T)
     info, rmse = _pnp_information(T, pairs, inliers, cam_from, cam_to, params)
+    variance = 1.0 / info[0, 0]
+    if params.pnp_max_variance > 0 and variance > params.pnp_max_variance:
+        # RTAB-Map's Vis/PnPMaxVariance: the words still disagree by centimetres after the fit (motion
+        # blur, rolling shutter); the graph check would let such a loose link in, so it is rejected here.
+        raise RegistrationError(
+            f"nodes {from_sig.id} -> {to_sig.id}: PnP translation variance {variance:.4f} m^2 ({n_inliers} "
+            f"inliers) > pnp_max_variance={params.pnp_max_variance}: loop closure rejected")
     return Registration(T, info, n_inliers, False, rmse)
 
 

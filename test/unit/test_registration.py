@@ -265,6 +265,32 @@ def test_guided_matching_finds_the_matches_the_shared_words_missed(shared_data, 
     assert _errors(reg.T_from_to, truth)[0] < 0.05
 
 
+@pytest.mark.parametrize("case", ["case_01", "case_03"])
+def test_pnp_rejects_a_real_loop_closure_whose_words_still_disagree_by_centimetres(shared_data, slam_params, case):
+    """RTAB-Map's Vis/PnPMaxVariance on hand-held pairs turning fast (fr1_rpy 01 and 03, 93 and 91 deg/s):
+    PnP finds enough inliers, but their 3D words still disagree by more than 5 cm (standard deviation)
+    and the estimate is off the motion capture by more than 3 cm or 1.5 deg; such a loose link would
+    pass the graph check, so registration rejects it. Without the limit it is accepted."""
+    new, old, descriptors, truth = product_signatures(shared_data / "rgbd" / "tum_fr1_rpy_loops" / case, slam_params)
+    limit = slam_params.registration.pnp_max_variance
+    assert limit > 0
+    with pytest.raises(RegistrationError, match="pnp_max_variance"):
+        register(new, old, slam_params.registration, descriptors=descriptors)
+    reg = register(new, old, replace(slam_params.registration, pnp_max_variance=0.0), descriptors=descriptors)
+    assert reg.inliers >= slam_params.registration.min_inliers
+    assert 1 / reg.information[0, 0] > limit
+    t_err, r_err = _errors(reg.T_from_to, truth)
+    assert t_err > OFF_M or r_err > OFF_DEG
+
+
+def test_pnp_max_variance_keeps_the_slow_pairs(shared_data, slam_params):
+    """The limit is far above what PnP leaves on slow real pairs (fr1_xyz: 1.0-1.3 cm)."""
+    for case in ("case_1", "case_2"):
+        new, old, descriptors, _ = product_signatures(shared_data / "rgbd" / "tum_fr1_xyz_pairs" / case, slam_params)
+        reg = register(new, old, slam_params.registration, descriptors=descriptors)
+        assert 1 / reg.information[0, 0] < 0.25 * slam_params.registration.pnp_max_variance
+
+
 def test_pnp_rejects_frames_of_another_scene(shared_data, slam_params):
     tum = shared_data / "rgbd" / "tum_fr1_xyz_pairs" / "case_1"
     other = shared_data / "rgbd" / "rtabmap_frames"
@@ -353,3 +379,17 @@ def test_auto_estimation_is_pnp_in_6dof_and_the_papers_ransac_under_planar_icp()
     assert AllParams().with_overrides(["Vis/EstimationType=0"]).registration.estimation == "3d"
     with pytest.raises(Exception, match="estimation"):
         AllParams().with_overrides(["Vis/EstimationType=2"])
+    assert AllParams().with_overrides(["Vis/PnPMaxVariance=0.01"]).registration.pnp_max_variance == 0.01
+
+
+def test_auto_estimation_follows_the_planar_flag_as_defaulted_and_configured():
+    """Reg/Force3DoF is false by default (6 DoF: PnP even with scans); config/rtabmap.yaml sets it for
+    its wheeled robot with a laser, whose loop closures stay the paper's 3D-3D RANSAC then 2D ICP."""
+    from rtabmap_ros2.core.params import Params as AllParams
+    from rtabmap_ros2.core.registration import uses_pnp
+
+    defaults = AllParams().registration
+    assert not defaults.planar and uses_pnp(defaults, icp_refined=True)
+    configured = AllParams.from_yaml(default_config_path()).registration
+    assert configured.planar and not uses_pnp(configured, icp_refined=True)
+    assert uses_pnp(configured, icp_refined=False)
