@@ -343,7 +343,8 @@ def loop_pairs(quick: bool) -> dict:
     return {"pairs": pairs_out, "summary": summary, "images_vs_truth_rpy": floor,
             "registration_params": {k: getattr(pnp, k) for k in ("estimation", "min_inliers", "pnp_reprojection_error",
                                                                  "pnp_refine_iterations", "bundle_adjustment",
-                                                                 "guided_window", "ransac_iterations")}}
+                                                                 "pnp_max_variance", "guided_window",
+                                                                 "ransac_iterations")}}
 
 
 def print_loop_pairs(result: dict) -> None:
@@ -420,7 +421,8 @@ def inlier_counts() -> list[dict]:
     images = {f"tum/{c}/{w}": ("tum", f"{c}/{w}") for c in ("case_1", "case_2") for w in ("prev", "curr")}
     images.update({f"rtabmap/{n}": ("rtabmap", n) for n in ("17", "154")})
     loaded = {k: load_image(*v) for k, v in images.items()}
-    estimators = {"pnp": RegistrationParams(planar=False, icp_refine=False, min_inliers=3),
+    # Inlier counts, not acceptance: no variance limit (a wrong pair's few inliers would read 0).
+    estimators = {"pnp": RegistrationParams(planar=False, icp_refine=False, min_inliers=3, pnp_max_variance=0.0),
                   "3d": RegistrationParams(planar=False, icp_refine=False, min_inliers=3, estimation="3d")}
     rows = []
     for x, y in itertools.combinations(loaded, 2):
