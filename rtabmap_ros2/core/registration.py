@@ -494,16 +494,18 @@ def register_pnp(from_sig: Signature, to_sig: Signature, params: RegistrationPar
             f"nodes {from_sig.id} -> {to_sig.id}: {n_inliers} PnP inliers < min_inliers={params.min_inliers} "
             f"({len(pairs)} word pairs, {int(pairs.forward.sum())} with depth in {from_sig.id}, "
             f"{int(pairs.backward.sum())} in {to_sig.id}): loop closure rejected")
-    if params.planar:
-        T = transforms.project_planar(T)
     info, rmse = _pnp_information(T, pairs, inliers, cam_from, cam_to, params)
     variance = 1.0 / info[0, 0]
     if params.pnp_max_variance > 0 and variance > params.pnp_max_variance:
-        # RTAB-Map's Vis/PnPMaxVariance: the words still disagree by centimetres after the fit (motion
-        # blur, rolling shutter); the graph check would let such a loose link in, so it is rejected here.
+        # RTAB-Map's Vis/PnPMaxVariance, on the 6-DoF estimate (before Reg/Force3DoF's projection, as
+        # there): the words still disagree by centimetres after the fit (motion blur, rolling
+        # shutter); the graph check would let such a loose link in, so it is rejected here.
         raise RegistrationError(
             f"nodes {from_sig.id} -> {to_sig.id}: PnP translation variance {variance:.4f} m^2 ({n_inliers} "
             f"inliers) > pnp_max_variance={params.pnp_max_variance}: loop closure rejected")
+    if params.planar:
+        T = transforms.project_planar(T)
+        info, rmse = _pnp_information(T, pairs, inliers, cam_from, cam_to, params)
     return Registration(T, info, n_inliers, False, rmse)
 
 
