@@ -330,12 +330,46 @@ class BayesParams:
 
 @dataclass(frozen=True)
 class RegistrationParams:
-    """Loop closure verification (2014 §II-A): RANSAC on 3D words, 2D ICP refinement."""
+    """Loop closure verification (2014 §II-A): PnP (or RANSAC on 3D words), 2D ICP refinement."""
 
     min_inliers: int = _p(20, "I: minimum RANSAC inliers to accept a loop closure (paper: 5; "
-                          "20 measured in bench/bench_registration.py to reject perceptual aliasing)")
-    inlier_distance: float = _p(0.1, "RANSAC inlier threshold on 3D word positions", "m")
-    ransac_iterations: int = _p(500, "RANSAC hypotheses", "iterations")
+                          "20 measured in bench/bench_registration.py to reject perceptual aliasing; RTAB-Map's "
+                          "Vis/MinInliers)")
+    estimation: str = _p(
+        "auto", "Loop closure transform (RTAB-Map's Vis/EstimationType): pnp (1: the 3D words of one node, "
+        "from its depth, against the 2D keypoints of the other, RANSAC on the reprojection error in pixels, "
+        "then refined on both nodes' words), 3d (0: RANSAC on 3D-3D word pairs, the 2014 paper's; "
+        "inlier_distance) or auto: pnp in 6 DoF, 3d when planar with laser scans, where 2D ICP then decides x, "
+        "y and yaw (the 2014 paper's pipeline; PnP there took the simulated building's seed 0 ATE from 0.0161 "
+        "to 0.0177 m and accepted 2 look-alike loop closures, bench/bench_slam.py). On the 24 real TUM loop "
+        "pairs: bench/bench_registration.py")
+    inlier_distance: float = _p(0.1, "3d estimation: RANSAC inlier threshold on 3D word positions", "m")
+    ransac_iterations: int = _p(500, "RANSAC hypotheses (both estimations)", "iterations")
+    pnp_reprojection_error: float = _p(
+        2.0, "pnp: a word pair is an inlier when it reprojects within this distance (RTAB-Map's "
+        "Vis/PnPReprojError)", "px")
+    pnp_refine_iterations: int = _p(
+        5, "pnp: refinements of the RANSAC estimate, each re-selecting the inliers at the current estimate "
+        "and minimising their reprojection errors (RTAB-Map's Vis/PnPRefineIterations; 0 = RANSAC's answer)",
+        "iterations")
+    bundle_adjustment: bool = _p(
+        True, "pnp: refine on the reprojection errors in both images (the from node's words, from its depth, "
+        "in the to image and the to node's in the from image: a two-view bundle adjustment of the pose with "
+        "the words held at their depth), not in the to image only (RTAB-Map's Vis/BundleAdjustment)")
+    pnp_max_variance: float = _p(
+        0.0025, "pnp: reject a loop closure whose translation variance (from the inliers' 3D residuals, as "
+        "its information matrix) is above this (RTAB-Map's Vis/PnPMaxVariance, there 0 = off). 0.0025 m^2 "
+        "(5 cm standard deviation): on the 24 real TUM loop pairs it rejects the 3 PnP estimates whose words "
+        "disagree that much (7.2, 6.7 and 2.7 cm, 2.2 to 3.3 deg off the motion capture; the graph check "
+        "cannot catch them, their covariance is as loose) and none within 3 cm / 1.5 deg; the accepted "
+        "ones on fr1_xyz have 1.0-1.3 cm (bench/bench_registration.py). 0 = off", "m^2")
+    guided_window: float = _p(
+        10.0, "pnp: after a first estimate from the shared words (8 inliers or more), match every keypoint "
+        "with depth to the keypoints of the other image within this distance of where the estimate projects "
+        "it (descriptor distance, nearest neighbour ratio), then refine again on these matches (RTAB-Map's "
+        "Vis/CorGuessWinSize, here with the first estimate as the guess; 0 = the shared words only, as "
+        "RTAB-Map's loop closures). On the 24 real TUM loop pairs 16 accepted instead of 9, as near the "
+        "images' own optimum (bench/bench_registration.py)", "px")
     planar: bool = _p(
         False, "Robot moves on a plane: registration and optimisation keep x, y and yaw only (RTAB-Map's "
         "Reg/Force3DoF, false by default as there: 6 DoF; config/rtabmap.yaml sets it for its wheeled robot "
@@ -362,6 +396,14 @@ class RegistrationParams:
         _check(self.min_inliers >= 3, "registration.min_inliers", self.min_inliers, ">= 3")
         _check(self.inlier_distance > 0, "registration.inlier_distance", self.inlier_distance, "> 0")
         _check(self.ransac_iterations >= 1, "registration.ransac_iterations", self.ransac_iterations, ">= 1")
+        _check(self.estimation in ("auto", "pnp", "3d"), "registration.estimation", self.estimation,
+               "auto, pnp or 3d")
+        _check(self.pnp_reprojection_error > 0, "registration.pnp_reprojection_error", self.pnp_reprojection_error,
+               "> 0")
+        _check(self.pnp_refine_iterations >= 0, "registration.pnp_refine_iterations", self.pnp_refine_iterations,
+               ">= 0")
+        _check(self.pnp_max_variance >= 0, "registration.pnp_max_variance", self.pnp_max_variance, ">= 0")
+        _check(self.guided_window >= 0, "registration.guided_window", self.guided_window, ">= 0")
         _check(self.icp_max_correspondence_distance > 0, "registration.icp_max_correspondence_distance",
                self.icp_max_correspondence_distance, "> 0")
         _check(self.icp_iterations >= 1, "registration.icp_iterations", self.icp_iterations, ">= 1")
@@ -709,6 +751,13 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Vis/MinInliers": ("registration.min_inliers", int),
     "Vis/InlierDistance": ("registration.inlier_distance", float),
     "Vis/Iterations": ("registration.ransac_iterations", int),
+    "Vis/EstimationType": ("registration.estimation",
+                           lambda v: _ESTIMATION_TYPES.get(int(v), f"Vis/EstimationType {v}")),
+    "Vis/PnPReprojError": ("registration.pnp_reprojection_error", float),
+    "Vis/PnPRefineIterations": ("registration.pnp_refine_iterations", int),
+    "Vis/PnPMaxVariance": ("registration.pnp_max_variance", float),
+    "Vis/BundleAdjustment": ("registration.bundle_adjustment", lambda v: int(v) > 0),
+    "Vis/CorGuessWinSize": ("registration.guided_window", float),
     "Reg/Force3DoF": ("registration.planar", lambda v: _to_bool("Reg/Force3DoF", v)),
     "RGBD/NeighborLinkRefining": ("registration.neighbor_link_refining",
                                   lambda v: _to_bool("RGBD/NeighborLinkRefining", v)),
@@ -737,6 +786,8 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
 # Kp/NNStrategy values with an equivalent here (RTAB-Map: 0 linear FLANN and 3-4 brute force, exact;
 # 1 FLANN kd-trees; 2 LSH, not available).
 _NN_STRATEGIES = {0: "flat", 1: "kdtree", 3: "flat", 4: "flat"}
+# Vis/EstimationType values with an equivalent here (RTAB-Map: 0 3D->3D, 1 3D->2D PnP, 2 2D->2D epipolar, absent).
+_ESTIMATION_TYPES = {0: "3d", 1: "pnp"}
 # Grid/Sensor values (RTAB-Map: 0 laser scan, 1 depth images, 2 both).
 _GRID_SENSORS = {0: "laser", 1: "depth", 2: "both"}
 # Kp/DetectorStrategy values with an equivalent here (RTAB-Map: 2=ORB, 1=SIFT, 8=GFTT/ORB).
