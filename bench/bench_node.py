@@ -307,6 +307,26 @@ def frames_at_detection_rate(bags: list[Path]) -> list[int]:
     return counts
 
 
+def thread_cpu_s() -> dict[str, float]:
+    """CPU seconds of this process's threads by name (Python threads; the others, DDS's and the
+    executor's, summed as ``other``), from /proc."""
+    import os
+    import threading
+
+    ticks = os.sysconf("SC_CLK_TCK")
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, float] = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        name = names.get(int(tid), "other")
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / ticks
+    return out
+
+
 def recording_replay(bags: list[Path], rate: float, ground_truth: Path, one_hz_frames: int) -> dict | None:
     """``bags`` played one after the other into one node (defaults + mounts) at ``rate``: counters,
     the worker's parts, the exported map's ATE and components."""
@@ -335,11 +355,13 @@ def recording_replay(bags: list[Path], rate: float, ground_truth: Path, one_hz_f
 
             node._core.process = timed_process
             load_before = os.getloadavg()[0]
+            cpu_before = thread_cpu_s()
             played, t0 = [], time.monotonic()
             for bag in bags:
                 played += _play(bag, rate, env, timeout_s=3600)[0]
             _drain(node, DRAIN_TIMEOUT_S)
             wall = time.monotonic() - t0
+            cpu = {name: round(s - cpu_before.get(name, 0.0), 1) for name, s in thread_cpu_s().items()}
             latencies = np.array(node.latencies_s) * 1e3
             parts = node.frame_times.spread()
             parts["core steps (inside process)"] = {
@@ -352,6 +374,7 @@ def recording_replay(bags: list[Path], rate: float, ground_truth: Path, one_hz_f
                 "latency_max_ms": float(latencies.max()) if latencies.size else None,
                 "rehearsal_merges": node.rehearsal_merges,
                 "period_of_1hz_frames_ms": 1000.0 / rate, "time_ms": parts,
+                "cpu_s_by_thread": dict(sorted(cpu.items(), key=lambda kv: -kv[1])),
                 "wall_s": wall, "load_average_1min": [load_before, os.getloadavg()[0]],
             }
         params = Params()
@@ -375,6 +398,7 @@ def _print_recording(r: dict) -> None:
           f"({r['nodes_plus_merges_ratio']:.1%}), {r['map_sessions']} sessions, {r['components']} component(s), "
           f"ATE {r['ate']['rmse_m'] * 100:.2f} cm; latency p50 {r['latency_p50_ms']:.0f} / p95 "
           f"{r['latency_p95_ms']:.0f} / max {r['latency_max_ms']:.0f} ms; load {r['load_average_1min']}")
+    print(f"  CPU s by thread over {r['wall_s']:.0f} s: {r['cpu_s_by_thread']}")
     print(f"  time per frame (ms) median/p95/max against a period of {r['period_of_1hz_frames_ms']:.0f} ms:")
     for thread, parts in r["time_ms"].items():
         text = ", ".join(f"{name} {v['median']:.1f}/{v['p95']:.1f}/{v['max']:.0f}" for name, v in parts.items())

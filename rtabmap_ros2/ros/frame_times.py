@@ -12,7 +12,10 @@ The node's threads (:mod:`rtabmap_ros2.ros.node`) each time their parts:
   newest local map): ``path`` (``mapPath``), ``markers`` (``mapGraph``), ``tf`` (map -> odom and
   ``localization_pose``), ``info`` (statistics messages);
 * ``grid`` (at most once per ``GRID_PERIOD_S``, from the newest local map): ``local_grid`` (the
-  incremental occupancy grid), ``map`` (its message).
+  incremental occupancy grid), ``map`` (its message);
+* ``callbacks`` (one row per sensor message, the executor's threads): the message's stream (``odom``,
+  ``scan``, ``rgb``, ``depth``, ``camera_info``): its conversion, the synchroniser and, for the message
+  completing a set, the frame's checks and queueing.
 
 ``info`` carries, as ``node_time_ms/<part>``, the newest row of every thread: the worker's of the
 frame itself (``node_time_ms/total`` its total), the others' of their last round. Every row is kept
@@ -33,6 +36,8 @@ INFO_KEY_PREFIX = "node_time_ms"
 MS_PER_S = 1e3
 # The thread whose rows have a ``total`` (the critical path).
 WORKER = "worker"
+# The rows of the sensor callbacks (one per message).
+CALLBACKS = "callbacks"
 
 
 class FrameTimer:
@@ -84,7 +89,7 @@ class FrameTimes:
         """``{"node_time_ms/<part>": ms, ...}``: the newest row of every thread (module doc)."""
         out: dict[str, float] = {}
         for thread, rows in list(self.threads.items()):
-            if rows:
+            if rows and thread != CALLBACKS:   # one row per message, not per frame: benchmarks only
                 out.update(self.info_of(rows[-1]))
         return out
 
@@ -102,4 +107,4 @@ class FrameTimes:
         return out
 
 
-__all__ = ["FrameTimer", "FrameTimes", "INFO_KEY_PREFIX", "WORKER"]
+__all__ = ["CALLBACKS", "FrameTimer", "FrameTimes", "INFO_KEY_PREFIX", "WORKER"]

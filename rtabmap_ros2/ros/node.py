@@ -114,7 +114,7 @@ from rtabmap_ros2.ros import conversions as conv
 from rtabmap_ros2.ros.frames import CAMERA, LASER, MapOdomBroadcaster, SensorMounts, import_tf2
 from rtabmap_ros2.ros.dropped import DroppedInputs
 from rtabmap_ros2.ros.frame_queue import FrameQueue, QueuedFrame
-from rtabmap_ros2.ros.frame_times import FrameTimer, FrameTimes
+from rtabmap_ros2.ros.frame_times import CALLBACKS, FrameTimer, FrameTimes
 from rtabmap_ros2.ros.map_publisher import MapPublisher, Outputs, Published
 from rtabmap_ros2.ros.params import declare_parameters
 from rtabmap_ros2.ros.subscriptions import GRAPH_CHECK_PERIOD_S, Candidate, StreamSubscriptions
@@ -418,6 +418,13 @@ class RtabmapNode(Node):
         return on_message
 
     def _on_message(self, stream: str, msg, convert: Callable) -> None:
+        timer = FrameTimer()
+        with timer.part(stream):
+            self._take_message(stream, msg, convert)
+        self.frame_times.add(timer, CALLBACKS)
+
+    def _take_message(self, stream: str, msg, convert: Callable) -> None:
+        """One sensor message: converted, then fed to the synchroniser (camera_info kept aside)."""
         topic = self.subscriptions_.topic(stream)
         arrival = time.monotonic()
         self._last_arrival[stream] = arrival
@@ -497,23 +504,34 @@ class RtabmapNode(Node):
         self._bad(self._topics.get(exc.source, "synchronised set"), exc.reason, str(exc))
 
     def _check_silence(self) -> None:
-        """Warn once per silence when an expected topic has been quiet for topic_timeout_s."""
+        """Warn once per silence when an expected topic has been quiet for topic_timeout_s.
+
+        Quiet since its last message, or since its subscription was made when none came yet: with qos
+        or image_transport ``auto`` a stream is subscribed when its publisher is discovered, which
+        under load can be seconds after the node started, and its first messages need the publisher
+        to match the new subscription (issue 50: ``/rgb/camera_info`` was reported silent for 5 s
+        counted from the node's start while it had been subscribed for less)."""
         timeout = self.params.node.topic_timeout_s
         now = time.monotonic()
         if now - self._start_time < timeout:
             return
-        silent = [s for s in self._topics
-                  if now - self._last_arrival.get(s, self._start_time) >= timeout and s not in self._silence_warned]
-        if not silent:
+        since = self.subscriptions_.since
+        quiet = {s: now - max(self._last_arrival.get(s, self._start_time), since.get(s, self._start_time))
+                 for s in self._topics if s not in self._silence_warned}
+        if not any(q >= timeout for q in quiet.values()):
             return
+        # With them, the streams the next check would report (subscribed a moment later): one warning.
+        silent = [s for s, q in quiet.items() if q >= timeout - SILENCE_CHECK_PERIOD_S]
         self._silence_warned.update(silent)
-        arrived = [self._topics[s] for s in self._topics if now - self._last_arrival.get(s, -1e18) < timeout]
+        arrived = [s for s in self._topics if now - self._last_arrival.get(s, -1e18) < timeout]
         unpublished = [s for s in silent if s not in self.subscriptions_.current]
+        waiting = ("; image frames wait for a camera_info (the newest is held)"
+                   if "camera_info" in silent and {"rgb", "depth"} & set(arrived) else "")
         self.get_logger().warning(
             f"no message for {timeout:g} s on {', '.join(self.subscriptions_.topics_text(s) for s in silent)}; "
-            f"receiving: {', '.join(arrived) if arrived else 'nothing'}"
+            f"receiving: {', '.join(self._topics[s] for s in arrived) if arrived else 'nothing'}"
             + (f"; no publisher at all on {', '.join(self.subscriptions_.topics_text(s) for s in unpublished)}"
-               if unpublished else "")
+               if unpublished else "") + waiting
             + ". Check the topic names, remapping, image_transport and QoS (parameter qos: auto, reliable or "
               "sensor_data), or turn the input off (subscribe_*).")
 

@@ -490,6 +490,43 @@ def test_silent_topics_are_reported_once(context, tmp_path, frames, capfd):
     assert len(overflow) == 1 and "has sent nothing yet" in overflow[0] and "heartbeat" in overflow[0], err
 
 
+def test_a_topic_subscribed_late_is_not_reported_silent_before_it_had_time(context, tmp_path, frames, capfd):
+    """With qos auto a stream is subscribed when its publisher appears (under load, seconds after the
+    node started): its silence counts from that subscription, not from the node's start (issue 50:
+    /rgb/camera_info reported silent for 5 s while it had been subscribed for less)."""
+    timeout = 2.0
+    h = Harness(context, tmp_path, qos="auto", topic_timeout_s=timeout)
+    late = Node("late_camera_driver", context=context)
+    h.executor.add_node(late)
+    try:
+        start = h.node._start_time
+        camera_pub = None
+        f = frames[0]
+        while time.monotonic() - start < timeout + 1.5:
+            age = time.monotonic() - start
+            if camera_pub is None and age >= timeout - 0.4:   # the driver's camera_info appears late...
+                camera_pub = late.create_publisher(CameraInfo, "rgb/camera_info", RELIABLE)
+            stamp = time.time_ns()
+            for name in ("odom", "scan", "rgb", "depth"):
+                msg = {"odom": lambda: conv.odometry_to_msg(f.T_odom_base, stamp),
+                       "scan": lambda: conv.scan_to_msg(f.scan, stamp, "laser"),
+                       "rgb": lambda: conv.image_to_msg(f.rgb, stamp, "camera_optical", "bgr8"),
+                       "depth": lambda: conv.depth_to_msg(f.depth_m, stamp, "camera_optical")}[name]()
+                h.tester.pubs[name].publish(msg)
+            if camera_pub is not None and age >= timeout + 0.6:   # ...and publishes a moment after
+                camera_pub.publish(conv.camera_info_to_msg(f.camera, stamp, "camera_optical"))
+            time.sleep(0.1)
+        assert "camera_info" in h.node.subscriptions_.current
+        assert wait_for(lambda: "camera_info" in h.node._last_arrival)
+        assert "camera_info" not in h.node._silence_warned
+    finally:
+        h.executor.remove_node(late)
+        time.sleep(4 * SPIN_WAIT_S)
+        late.destroy_node()
+        h.close()
+    assert "no message for" not in capfd.readouterr().err
+
+
 # -- across processes ------------------------------------------------------------------------------
 
 @contextlib.contextmanager
