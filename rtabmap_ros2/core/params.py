@@ -379,7 +379,9 @@ class GraphParams:
     """Graph SLAM (2014 §II-B, C): optimisation and sessions."""
 
     optimizer: str = _p("lm", "Pose graph solver (gtsam): lm (Levenberg-Marquardt), gn (Gauss-Newton), "
-                        "dogleg")
+                        "dogleg (Powell's, from a wide trust region; LM where the Gauss-Newton system is singular), "
+                        "auto (LM, dogleg once LM's damping fails in two iterations running: the default of "
+                        "rtabmap-ros2 optimize)")
     iterations: int = _p(100, "Maximum optimiser iterations", "iterations")
     robust: bool = _p(True, "Dynamic covariance scaling on loop closures; drop those it rejects")
     robust_reject_scale: float = _p(
@@ -431,7 +433,8 @@ class GraphParams:
                                       "m^2, rad^2")
 
     def __post_init__(self) -> None:
-        _check(self.optimizer in ("lm", "gn", "dogleg"), "graph.optimizer", self.optimizer, "lm, gn or dogleg")
+        _check(self.optimizer in ("lm", "gn", "dogleg", "auto"), "graph.optimizer", self.optimizer,
+               "lm, gn, dogleg or auto")
         _check(self.iterations >= 1, "graph.iterations", self.iterations, ">= 1")
         _check(0.0 < self.robust_reject_scale < 1.0, "graph.robust_reject_scale", self.robust_reject_scale,
                "in (0, 1)")
