@@ -4,6 +4,11 @@
 node's scan was cast at. :meth:`LocalGrid.update` takes the local map as plain inputs (optimised
 poses and laser scans by node), so its owner can be the core (``LocalMapper.grid``) or another
 thread working on a snapshot of the local map (the live node builds its grid beside the worker).
+
+Laser scans only: the depth grid of ``grid.sensor`` (``core/grid.py`` ``depth_cells``, used by
+``get_map`` / ``export``) needs each node's depth image, which working memory does not keep (the
+database does); a depth local grid would keep each node's depth cells, in its base frame, beside
+its signature (docs/limitations.md).
 """
 
 from __future__ import annotations
