@@ -266,9 +266,8 @@ def two_session_replay(bags: list[Path], rate: float) -> dict | None:
                 if core:
                     summary["core total_time_ms"] = _spread(core)
                 result["time_ms_by_session"].append(summary)
-        from rtabmap_ros2.core.params import Params
 
-        global_map = load_global_map(Path(tmp) / "bench.db", Params())
+        global_map = load_global_map(Path(tmp) / "bench.db", node_params())
         result["map_nodes"] = len(global_map.poses)
         result["map_sessions"] = len(set(global_map.map_ids.values()))
         result["components"] = len(global_map.components)
@@ -279,6 +278,14 @@ def two_session_replay(bags: list[Path], rate: float) -> dict | None:
 # Section 4 (issue 50): the recording's parameters.
 RECORDING_SEED = 7
 RECORDING_FRAME_RATE_HZ = 2.0
+
+
+def node_params():
+    """The parameters the node runs at by default (config/rtabmap.yaml when found: planar; Params()'s
+    own default is 6 DoF since issue 49), for the export and the 1 Hz frames."""
+    from rtabmap_ros2.ros.params import defaults
+
+    return defaults()
 
 
 def make_recording(out: Path) -> list[Path]:
@@ -294,10 +301,9 @@ def make_recording(out: Path) -> list[Path]:
 
 def frames_at_detection_rate(bags: list[Path]) -> list[int]:
     """The frames ``map`` makes of each bag at the node's default detection rate (the 1 Hz frames)."""
-    from rtabmap_ros2.core.params import Params
     from rtabmap_ros2.io.bag import BagDataset
 
-    sync = Params().sync
+    sync = node_params().sync
     counts = []
     for bag in bags:
         dataset = BagDataset(bag, sync=sync)
@@ -335,7 +341,6 @@ def recording_replay(bags: list[Path], rate: float, ground_truth: Path, one_hz_f
 
     try:
         from rtabmap_ros2.core.global_map import load_global_map
-        from rtabmap_ros2.core.params import Params
         from rtabmap_ros2.io.export import export_global_map
         from rtabmap_ros2.io.trajectory import ate, read_tum
     except ImportError as exc:
@@ -377,7 +382,7 @@ def recording_replay(bags: list[Path], rate: float, ground_truth: Path, one_hz_f
                 "cpu_s_by_thread": dict(sorted(cpu.items(), key=lambda kv: -kv[1])),
                 "wall_s": wall, "load_average_1min": [load_before, os.getloadavg()[0]],
             }
-        params = Params()
+        params = node_params()
         global_map = load_global_map(Path(tmp) / "bench.db", params)
         result["map_nodes"] = len(global_map.poses)
         result["map_sessions"] = len(set(global_map.map_ids.values()))
