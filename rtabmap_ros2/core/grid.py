@@ -106,6 +106,10 @@ class GridAccumulator:
         self._anchor_cell: np.ndarray | None = None   # _origin_cell at the first scan (see add)
         self._hits = np.zeros((0, 0), np.int32)
         self._misses = np.zeros((0, 0), np.int32)
+        # Cells (x, y, absolute) every beam so far fell within, one cell of rounding either side:
+        # grid() looks there only, not over the canvas and its growth slack.
+        self._box_lo: np.ndarray | None = None
+        self._box_hi: np.ndarray | None = None
 
     def add(self, T_map_base: np.ndarray, scan: LaserScan, weight: int = 1) -> None:
         """Ray-cast one scan taken at ``T_map_base`` (4x4) into the counts; ``weight`` -1 takes
@@ -144,6 +148,8 @@ class GridAccumulator:
         lo = np.floor(np.minimum(origin_pts.min(axis=0), end_pts.min(axis=0)) / res).astype(np.int64)
         hi = np.floor(np.maximum(origin_pts.max(axis=0), end_pts.max(axis=0)) / res).astype(np.int64)
         self._ensure(lo - GRID_MARGIN_CELLS, hi + GRID_MARGIN_CELLS)
+        self._box_lo = lo - 1 if self._box_lo is None else np.minimum(self._box_lo, lo - 1)
+        self._box_hi = hi + 1 if self._box_hi is None else np.maximum(self._box_hi, hi + 1)
         height, width = self._hits.shape
         if self._anchor_cell is None:
             self._anchor_cell = self._origin_cell.copy()
@@ -211,15 +217,19 @@ class GridAccumulator:
     def grid(self) -> OccupancyGrid:
         """The occupancy grid cropped to the observed cells (plus a small margin)."""
         res = self.resolution
-        observed = (self._hits + self._misses) > 0
+        if self._box_lo is None:
+            return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), res, (0.0, 0.0))
+        (bc0, br0), (bc1, br1) = (np.maximum(self._box_lo - self._origin_cell, 0).tolist(),
+                                  (self._box_hi - self._origin_cell + 1).tolist())
+        observed = (self._hits[br0:br1, bc0:bc1] + self._misses[br0:br1, bc0:bc1]) > 0
         if not observed.any():
             return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), res, (0.0, 0.0))
-        rows = np.flatnonzero(observed.any(axis=1))
-        cols = np.flatnonzero(observed.any(axis=0))
+        rows = np.flatnonzero(observed.any(axis=1)) + br0
+        cols = np.flatnonzero(observed.any(axis=0)) + bc0
         r0 = max(int(rows[0]) - GRID_MARGIN_CELLS, 0)
-        r1 = min(int(rows[-1]) + GRID_MARGIN_CELLS + 1, observed.shape[0])
+        r1 = min(int(rows[-1]) + GRID_MARGIN_CELLS + 1, self._hits.shape[0])
         c0 = max(int(cols[0]) - GRID_MARGIN_CELLS, 0)
-        c1 = min(int(cols[-1]) + GRID_MARGIN_CELLS + 1, observed.shape[1])
+        c1 = min(int(cols[-1]) + GRID_MARGIN_CELLS + 1, self._hits.shape[1])
         hits = self._hits[r0:r1, c0:c1]
         misses = self._misses[r0:r1, c0:c1]
         data = np.full(hits.shape, UNKNOWN, np.int8)

@@ -17,7 +17,6 @@ from typing import Mapping, Optional
 
 import numpy as np
 
-from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
 from rtabmap_ros2.core.params import GridParams
 from rtabmap_ros2.core.sensor import LaserScan
@@ -77,7 +76,9 @@ class LocalGrid:
         tolerance_m = GRID_RECAST_CELLS * self.params.resolution
         tolerance_rad = tolerance_m / (self.params.range_max or GRID_DEFAULT_RANGE_M)
         left = [n for n in cast if n not in scans]
-        moved = {n for n in scans if n in cast and not _same_pose(cast[n][0], poses[n], tolerance_m, tolerance_rad)}
+        kept = [n for n in scans if n in cast]
+        moved = set(np.asarray(kept)[_moved([cast[n][0] for n in kept], [poses[n] for n in kept],
+                                             tolerance_m, tolerance_rad)].tolist()) if kept else set()
         if self._grid is None or (max_casts is None and 2 * (len(left) + len(moved)) > len(cast)):
             self._grid = GridAccumulator(self.params)
             cast.clear()
@@ -109,7 +110,12 @@ class LocalGrid:
         return self._grid.grid()
 
 
-def _same_pose(a: np.ndarray, b: np.ndarray, tolerance_m: float, tolerance_rad: float) -> bool:
-    """Two 4x4 poses closer than ``tolerance_m`` (each axis) and ``tolerance_rad`` of rotation."""
-    return bool(np.abs(a[:3, 3] - b[:3, 3]).max() < tolerance_m
-                and transforms.rotation_angle(transforms.relative(a, b)) < tolerance_rad)
+def _moved(before: list[np.ndarray], after: list[np.ndarray], tolerance_m: float, tolerance_rad: float) -> np.ndarray:
+    """(N,) bool: pose i of ``after`` is ``tolerance_m`` (on an axis) or ``tolerance_rad`` (rotation
+    angle of before_i^-1 after_i) or more from pose i of ``before`` (4x4 each), all at once (one
+    pose at a time was 40 % of an update's time on a 300-node local map, issue 50)."""
+    a, b = np.stack(before), np.stack(after)
+    far = np.abs(a[:, :3, 3] - b[:, :3, 3]).max(axis=1) >= tolerance_m
+    # trace(Ra^T Rb) = sum of Ra * Rb element by element; angle = arccos((trace - 1) / 2).
+    cos = (np.einsum("nij,nij->n", a[:, :3, :3], b[:, :3, :3]) - 1.0) / 2.0
+    return far | (np.arccos(np.clip(cos, -1.0, 1.0)) >= tolerance_rad)

@@ -10,7 +10,8 @@ statistics and a snapshot of the local map) and goes on with the next frame. Two
   between are skipped, not queued: RViz shows the newest map, and a 700-node ``mapPath`` (6-40 ms
   to build) is not built four times a second. The latency of a frame (``latencies_s``, ``info``'s
   ``node_latency_ms``) runs from its last message to the publication of a map that holds it.
-* the **grid** thread: at most once per ``grid_period_s``, the newest local map's occupancy grid
+* the **grid** thread: at most once per ``grid_period_s`` (and busy at most GRID_MAX_SHARE of the
+  time: a loaded machine's slow updates are spaced out, not left to take the worker's CPU), the newest local map's occupancy grid
   (:class:`~rtabmap_ros2.core.local_grid.LocalGrid`, its own: incremental, at most ``grid_max_casts``
   scans cast per update, the nodes nearest the robot first) on ``map``; it goes on updating while
   scans are left to cast (after a loop closure moved a large map) even when no new frame comes.
@@ -42,6 +43,9 @@ PUBLISHER_THREAD = "publisher"
 GRID_THREAD = "grid"
 # Wake-up period of the threads when idle, so a stop is noticed (s).
 POLL_S = 0.1
+# The grid thread waits at least its last update's time / this before the next: on 2 cores at load
+# 10-18 (issue 50's recording at 1x) its updates took 180-450 ms and it used more CPU than the worker.
+GRID_MAX_SHARE = 0.25
 
 
 @dataclass
@@ -174,9 +178,11 @@ class MapPublisher:
     # -- grid thread ---------------------------------------------------------------------------
     def _grid_loop(self) -> None:
         grid, generation, last_map, last_time = LocalGrid(self._grid_params), self._generation, None, -float("inf")
+        last_duration = 0.0
         while not self._stop.is_set():
             pending = grid.pending > 0
-            wait = last_time + self._grid_period_s - time.monotonic()
+            period = max(self._grid_period_s, last_duration / GRID_MAX_SHARE)
+            wait = last_time + period - time.monotonic()
             if wait > 0:
                 if self._stop.wait(wait):
                     return
@@ -191,6 +197,7 @@ class MapPublisher:
                 grid, generation = LocalGrid(self._grid_params), newest.generation
             last_map, last_time = newest, time.monotonic()
             self._guarded(lambda: self._publish_grid(grid, newest))
+            last_duration = time.monotonic() - last_time
 
     def _publish_grid(self, grid: LocalGrid, newest: Published) -> None:
         timer = FrameTimer()
