@@ -28,6 +28,21 @@
    this section alone; ``--rates`` chooses the rates; ``--full-sessions`` plays the two full
    sessions (~300 and ~400 frames, maps of ~700 nodes) instead of the small ones (-> ``two_sessions_full``).
 
+4. Issue 50's input (``--recording``): a recording like the independent one issue 50 replayed, built
+   with our simulator: ``rtabmap-ros2 simulate --sessions 2 --seed 7 --raw-images --frame-rate 2
+   --laser-mount ... --camera-mount ... --no-tf-static`` (two full sessions, 640x480 rgb8 + 16UC1
+   depth, LaserScan and odometry at 2 Hz, the second session's odometry restarting at identity,
+   sensors off the base given as the node's ``base_to_laser`` / ``base_to_camera``), played by
+   ``rtabmap-ros2 play --rate R`` into one node at its defaults, at R = 1, 2 and 4 (``--rates``).
+   Reported per rate: frames played (RGB messages), sets synchronised at the detection rate (1 Hz of
+   bag time), the frames ``map`` makes of the same bags at the same rate (the "1 Hz frames"), frames
+   processed, dropped from the worker's queue, became nodes (and rehearsal merges), the worker's
+   time per frame by part (``FrameTimes``: median / p95 / max; ``total`` is the worker's critical
+   path, the other threads' parts beside it) against the period of the 1 Hz frames at that rate,
+   latency to ``mapPath``, the exported map's ATE against ``ground_truth.txt`` (one alignment) and
+   its connected components, the load average before and after. ``--recording-dir DIR`` keeps the
+   2 GB of bags between runs (simulated there when missing).
+
 Prints a table and writes ``bench/results/node.json`` (sections not run keep their last results).
 """
 
@@ -251,14 +266,148 @@ def two_session_replay(bags: list[Path], rate: float) -> dict | None:
                 if core:
                     summary["core total_time_ms"] = _spread(core)
                 result["time_ms_by_session"].append(summary)
-        from rtabmap_ros2.core.params import Params
 
-        global_map = load_global_map(Path(tmp) / "bench.db", Params())
+        global_map = load_global_map(Path(tmp) / "bench.db", node_params())
         result["map_nodes"] = len(global_map.poses)
         result["map_sessions"] = len(set(global_map.map_ids.values()))
         result["components"] = len(global_map.components)
     result["nodes_plus_merges"] = result["map_nodes"] + result["rehearsal_merges"]
     return result
+
+
+# Section 4 (issue 50): the recording's parameters.
+RECORDING_SEED = 7
+RECORDING_FRAME_RATE_HZ = 2.0
+
+
+def node_params():
+    """The parameters the node runs at by default (config/rtabmap.yaml when found: planar; Params()'s
+    own default is 6 DoF since issue 49), for the export and the 1 Hz frames."""
+    from rtabmap_ros2.ros.params import defaults
+
+    return defaults()
+
+
+def make_recording(out: Path) -> list[Path]:
+    """Issue 50's input in ``out`` (simulated when ``out`` has no ground truth yet): the bags."""
+    from rtabmap_ros2.sim.simulate import simulate
+
+    if not (out / "ground_truth.txt").is_file():
+        print(f"simulating issue 50's recording in {out} (2 sessions, raw images, 2 Hz)", flush=True)
+        simulate(out, sessions=2, seed=RECORDING_SEED, raw_images=True, frame_rate_hz=RECORDING_FRAME_RATE_HZ,
+                 laser_mount=LASER_MOUNT, camera_mount=CAMERA_MOUNT, tf_static=False)
+    return [out / "session_1", out / "session_2"]
+
+
+def frames_at_detection_rate(bags: list[Path]) -> list[int]:
+    """The frames ``map`` makes of each bag at the node's default detection rate (the 1 Hz frames)."""
+    from rtabmap_ros2.io.bag import BagDataset
+
+    sync = node_params().sync
+    counts = []
+    for bag in bags:
+        dataset = BagDataset(bag, sync=sync)
+        for _ in dataset:
+            pass
+        counts.append(dataset.last_read.frames)
+    return counts
+
+
+def thread_cpu_s() -> dict[str, float]:
+    """CPU seconds of this process's threads by name (Python threads; the others, DDS's and the
+    executor's, summed as ``other``), from /proc."""
+    import os
+    import threading
+
+    ticks = os.sysconf("SC_CLK_TCK")
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, float] = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        name = names.get(int(tid), "other")
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / ticks
+    return out
+
+
+def recording_replay(bags: list[Path], rate: float, ground_truth: Path, one_hz_frames: int) -> dict | None:
+    """``bags`` played one after the other into one node (defaults + mounts) at ``rate``: counters,
+    the worker's parts, the exported map's ATE and components."""
+    import os
+    import tempfile
+
+    try:
+        from rtabmap_ros2.core.global_map import load_global_map
+        from rtabmap_ros2.io.export import export_global_map
+        from rtabmap_ros2.io.trajectory import ate, read_tum
+    except ImportError as exc:
+        print(f"recording replay: skipped ({exc})")
+        return None
+
+    mounts = {"base_to_laser": LASER_MOUNT, "base_to_camera": CAMERA_MOUNT}
+    with tempfile.TemporaryDirectory() as tmp:
+        with _node_in_process(tmp, mounts) as (node, env):
+            core_steps: list[dict] = []   # the core's own step times (Statistics.timings_ms) per frame
+            process = node._core.process
+
+            def timed_process(frame, **kwargs):
+                stats = process(frame, **kwargs)
+                core_steps.append({**stats.timings_ms, "pTime": stats.process_time_ms})
+                return stats
+
+            node._core.process = timed_process
+            load_before = os.getloadavg()[0]
+            cpu_before = thread_cpu_s()
+            played, t0 = [], time.monotonic()
+            for bag in bags:
+                played += _play(bag, rate, env, timeout_s=3600)[0]
+            _drain(node, DRAIN_TIMEOUT_S)
+            wall = time.monotonic() - t0
+            cpu = {name: round(s - cpu_before.get(name, 0.0), 1) for name, s in thread_cpu_s().items()}
+            latencies = np.array(node.latencies_s) * 1e3
+            parts = node.frame_times.spread()
+            parts["core steps (inside process)"] = {
+                k: _spread([row[k] for row in core_steps if k in row]) for k in core_steps[0]} if core_steps else {}
+            result = {
+                "rate": rate, "frames_played": sum(played), "frames_played_per_session": played,
+                "one_hz_frames": one_hz_frames, **_counters(node),
+                "latency_p50_ms": float(np.median(latencies)) if latencies.size else None,
+                "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else None,
+                "latency_max_ms": float(latencies.max()) if latencies.size else None,
+                "rehearsal_merges": node.rehearsal_merges,
+                "period_of_1hz_frames_ms": 1000.0 / rate, "time_ms": parts,
+                "cpu_s_by_thread": dict(sorted(cpu.items(), key=lambda kv: -kv[1])),
+                "wall_s": wall, "load_average_1min": [load_before, os.getloadavg()[0]],
+            }
+        params = node_params()
+        global_map = load_global_map(Path(tmp) / "bench.db", params)
+        result["map_nodes"] = len(global_map.poses)
+        result["map_sessions"] = len(set(global_map.map_ids.values()))
+        summary = export_global_map(Path(tmp) / "bench.db", Path(tmp) / "export", params)
+        result["components"] = summary["components"]
+        result["ate"] = ate(read_tum(Path(tmp) / "export" / "poses.txt"), read_tum(ground_truth)).to_dict()
+    result["nodes_ratio"] = result["map_nodes"] / one_hz_frames if one_hz_frames else 0.0
+    result["nodes_plus_merges_ratio"] = (result["map_nodes"] + result["rehearsal_merges"]) / one_hz_frames \
+        if one_hz_frames else 0.0
+    return result
+
+
+def _print_recording(r: dict) -> None:
+    print(f"rate {r['rate']:g}x: played {r['frames_played']} ({r['frames_played_per_session']}), synchronised "
+          f"{r['sets_synchronised']} (1 Hz frames of the bags: {r['one_hz_frames']}), processed "
+          f"{r['frames_processed']}, dropped {r['frames_dropped_queue']} (sync {r['sync_dropped']}); nodes "
+          f"{r['map_nodes']} ({r['nodes_ratio']:.1%}) + {r['rehearsal_merges']} rehearsal merges "
+          f"({r['nodes_plus_merges_ratio']:.1%}), {r['map_sessions']} sessions, {r['components']} component(s), "
+          f"ATE {r['ate']['rmse_m'] * 100:.2f} cm; latency p50 {r['latency_p50_ms']:.0f} / p95 "
+          f"{r['latency_p95_ms']:.0f} / max {r['latency_max_ms']:.0f} ms; load {r['load_average_1min']}")
+    print(f"  CPU s by thread over {r['wall_s']:.0f} s: {r['cpu_s_by_thread']}")
+    print(f"  time per frame (ms) median/p95/max against a period of {r['period_of_1hz_frames_ms']:.0f} ms:")
+    for thread, parts in r["time_ms"].items():
+        text = ", ".join(f"{name} {v['median']:.1f}/{v['p95']:.1f}/{v['max']:.0f}" for name, v in parts.items())
+        print(f"    {thread}: {text}")
 
 
 def _spread(values: list[float]) -> dict[str, float]:
@@ -299,9 +448,29 @@ def main(argv: list[str] | None = None) -> int:
                         help="playback speeds of section 3")
     parser.add_argument("--full-sessions", action="store_true",
                         help="section 3 on the two full simulated sessions instead of the small ones")
+    parser.add_argument("--recording", action="store_true", help="section 4 only (issue 50's input)")
+    parser.add_argument("--recording-dir", type=Path, default=None,
+                        help="section 4's bags (simulated there when missing; default: a temporary folder)")
     args = parser.parse_args(argv)
 
     old = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    if args.recording:
+        import tempfile
+
+        runs = []
+        with tempfile.TemporaryDirectory() as tmp:
+            folder = args.recording_dir or Path(tmp)
+            bags = make_recording(folder)
+            one_hz = frames_at_detection_rate(bags)
+            print(f"1 Hz frames of the bags (what map makes of them): {one_hz}", flush=True)
+            for rate in args.rates:
+                r = recording_replay(bags, rate, folder / "ground_truth.txt", sum(one_hz))
+                if r is not None:
+                    runs.append(r)
+                    _print_recording(r)
+                    RESULTS.write_text(json.dumps({**old, "recording_2hz_raw": runs}, indent=2))
+        print(f"wrote {RESULTS}")
+        return 0
     if args.two_sessions_only:
         import tempfile
 

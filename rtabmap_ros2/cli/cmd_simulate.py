@@ -33,6 +33,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--session-gap", type=float, default=None, metavar="SECONDS",
                         help="time between session starts (default 3600; 0: all sessions at once, as robots "
                              "mapping at the same time, e.g. for merge)")
+    parser.add_argument("--frame-rate", type=float, default=None, metavar="HZ",
+                        help="frames per second of every stream (default 1; e.g. 2: twice the frames of the same "
+                             "drives, as drivers publishing faster than the 1 Hz detection rate)")
     parser.add_argument("--no-tf-static", action="store_true",
                         help="do not write /tf_static (the mounts must then be given to map / the node)")
     parser.set_defaults(func=run)
@@ -55,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
     summary = simulate(args.out, sessions=sessions, seed=args.seed, small=args.small, jobs=args.jobs,
                        raw_images=args.raw_images, laser_mount=args.laser_mount, camera_mount=args.camera_mount,
                        tf_static=not args.no_tf_static,
-                       **({} if args.session_gap is None else {"session_gap_s": args.session_gap}))
+                       **({} if args.session_gap is None else {"session_gap_s": args.session_gap}),
+                       **({} if args.frame_rate is None else {"frame_rate_hz": args.frame_rate}))
     for s in summary.sessions:
         print(f"session {s['session']}: {s['frames']} frames, {s['length_m']:.1f} m, "
               f"{s['revisit_frames']} frames revisit sessions {s['revisited_sessions']}")

@@ -106,6 +106,10 @@ class GridAccumulator:
         self._anchor_cell: np.ndarray | None = None   # _origin_cell at the first scan (see add)
         self._hits = np.zeros((0, 0), np.int32)
         self._misses = np.zeros((0, 0), np.int32)
+        # Cells (x, y, absolute) every beam so far fell within, one cell of rounding either side:
+        # grid() looks there only, not over the canvas and its growth slack.
+        self._box_lo: np.ndarray | None = None
+        self._box_hi: np.ndarray | None = None
 
     def add(self, T_map_base: np.ndarray, scan: LaserScan, weight: int = 1) -> None:
         """Ray-cast one scan taken at ``T_map_base`` (4x4) into the counts; ``weight`` -1 takes
@@ -144,6 +148,8 @@ class GridAccumulator:
         lo = np.floor(np.minimum(origin_pts.min(axis=0), end_pts.min(axis=0)) / res).astype(np.int64)
         hi = np.floor(np.maximum(origin_pts.max(axis=0), end_pts.max(axis=0)) / res).astype(np.int64)
         self._ensure(lo - GRID_MARGIN_CELLS, hi + GRID_MARGIN_CELLS)
+        self._box_lo = lo - 1 if self._box_lo is None else np.minimum(self._box_lo, lo - 1)
+        self._box_hi = hi + 1 if self._box_hi is None else np.maximum(self._box_hi, hi + 1)
         height, width = self._hits.shape
         if self._anchor_cell is None:
             self._anchor_cell = self._origin_cell.copy()
@@ -161,16 +167,14 @@ class GridAccumulator:
         end_cells = flat(end_pts)
         hits = self._hits.reshape(-1)
         misses = self._misses.reshape(-1)
+        # Counts are added cell by cell where the beams went, not over the whole canvas: a scan costs
+        # its beams, not the map's area (bincount over a 4-million-cell canvas was 120 ms a scan).
         # Hits: the end cell of every beam with a return.
-        hits += weight * np.bincount(end_cells[is_hit], minlength=hits.size).astype(np.int32)
-        crossed = np.zeros(misses.size, bool) if once_per_cell else None
-        if free_ends is not None:
-            if crossed is not None:
-                crossed[end_cells[free_ends]] = True
-            else:
-                misses += weight * np.bincount(end_cells[free_ends], minlength=misses.size).astype(np.int32)
+        _count(hits, end_cells[is_hit], weight)
         # Misses: cells crossed by each beam before its end (ray casting, SAMPLES_PER_CELL per cell),
-        # in chunks of about MAX_SAMPLES_PER_CHUNK samples (bounded memory).
+        # in chunks of about MAX_SAMPLES_PER_CHUNK samples (bounded memory); the end cells of the
+        # beams with ``free_ends``.
+        crossed = [end_cells[free_ends]] if free_ends is not None else []
         vec = end_pts - origin_pts
         n_samples = _samples_per_beam(vec, res)
         chunk_of = np.cumsum(n_samples) // MAX_SAMPLES_PER_CHUNK
@@ -178,13 +182,15 @@ class GridAccumulator:
         for lo_b, hi_b in zip(np.r_[0, bounds], np.r_[bounds, len(vec)]):
             cells = _crossed_cells(origin_pts[lo_b:hi_b], vec[lo_b:hi_b], n_samples[lo_b:hi_b],
                                    end_cells[lo_b:hi_b], flat)
-            if crossed is not None:
-                crossed[cells] = True
+            if once_per_cell:
+                crossed.append(np.unique(cells))
             else:
-                misses += weight * np.bincount(cells, minlength=misses.size).astype(np.int32)
-        if crossed is not None:
-            crossed[end_cells[is_hit]] = False
-            misses += weight * crossed.astype(np.int32)
+                _count(misses, cells, weight)
+        if once_per_cell:
+            cells = np.unique(np.concatenate(crossed)) if crossed else np.zeros(0, np.int64)
+            _count(misses, np.setdiff1d(cells, end_cells[is_hit], assume_unique=False), weight)
+        elif crossed:
+            _count(misses, crossed[0], weight)
 
     def _ensure(self, lo_cell: np.ndarray, hi_cell: np.ndarray) -> None:
         """Grow the canvas (with slack, so growth is rare) to hold cells lo_cell..hi_cell."""
@@ -211,15 +217,19 @@ class GridAccumulator:
     def grid(self) -> OccupancyGrid:
         """The occupancy grid cropped to the observed cells (plus a small margin)."""
         res = self.resolution
-        observed = (self._hits + self._misses) > 0
+        if self._box_lo is None:
+            return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), res, (0.0, 0.0))
+        (bc0, br0), (bc1, br1) = (np.maximum(self._box_lo - self._origin_cell, 0).tolist(),
+                                  (self._box_hi - self._origin_cell + 1).tolist())
+        observed = (self._hits[br0:br1, bc0:bc1] + self._misses[br0:br1, bc0:bc1]) > 0
         if not observed.any():
             return OccupancyGrid(np.full((1, 1), UNKNOWN, np.int8), res, (0.0, 0.0))
-        rows = np.flatnonzero(observed.any(axis=1))
-        cols = np.flatnonzero(observed.any(axis=0))
+        rows = np.flatnonzero(observed.any(axis=1)) + br0
+        cols = np.flatnonzero(observed.any(axis=0)) + bc0
         r0 = max(int(rows[0]) - GRID_MARGIN_CELLS, 0)
-        r1 = min(int(rows[-1]) + GRID_MARGIN_CELLS + 1, observed.shape[0])
+        r1 = min(int(rows[-1]) + GRID_MARGIN_CELLS + 1, self._hits.shape[0])
         c0 = max(int(cols[0]) - GRID_MARGIN_CELLS, 0)
-        c1 = min(int(cols[-1]) + GRID_MARGIN_CELLS + 1, observed.shape[1])
+        c1 = min(int(cols[-1]) + GRID_MARGIN_CELLS + 1, self._hits.shape[1])
         hits = self._hits[r0:r1, c0:c1]
         misses = self._misses[r0:r1, c0:c1]
         data = np.full(hits.shape, UNKNOWN, np.int8)
@@ -403,6 +413,13 @@ def _dilated(cells: np.ndarray) -> np.ndarray:
     return out
 
 
+def _count(counts: np.ndarray, cells: np.ndarray, weight: int) -> None:
+    """Add ``weight`` to the flat ``counts`` once per occurrence of each index in ``cells``."""
+    if len(cells):
+        unique, times = np.unique(cells, return_counts=True)
+        counts[unique] += (weight * times).astype(counts.dtype)
+
+
 def _crossed_cells(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, end_cells: np.ndarray,
                    flat) -> np.ndarray:
     """Flat indices of the cells each beam crosses before its end cell, once per (beam, cell)
@@ -429,10 +446,16 @@ def _samples_per_beam(vec: np.ndarray, cell: float) -> np.ndarray:
 def _beam_samples(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``n_samples[i]`` evenly spaced points along beam i, from its origin to just before its end,
     all beams at once: (beam index of each sample, (total,2) sample points)."""
+    total = int(n_samples.sum())
     beam = np.repeat(np.arange(len(vec)), n_samples)
-    step = np.arange(int(n_samples.sum())) - np.repeat(np.cumsum(n_samples) - n_samples, n_samples)
+    step = np.arange(total) - np.repeat(np.cumsum(n_samples) - n_samples, n_samples)
     frac = step / np.repeat(np.maximum(n_samples, 1), n_samples)
-    return beam, origins[beam] + vec[beam] * frac[:, None]
+    # Per-beam values repeated (contiguous copies), not gathered by beam index: 2-3x faster.
+    points = np.empty((total, 2))
+    for axis in (0, 1):
+        np.multiply(np.repeat(vec[:, axis], n_samples), frac, out=points[:, axis])
+        points[:, axis] += np.repeat(origins[:, axis], n_samples)
+    return beam, points
 
 
 def _beams_map(T_map_base: np.ndarray, scan: LaserScan, range_max: float):

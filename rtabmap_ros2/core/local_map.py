@@ -21,14 +21,15 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Graph, Link, LinkType, chain_poses, consensus_guess
-from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
+from rtabmap_ros2.core.grid import OccupancyGrid
+from rtabmap_ros2.core.local_grid import LocalGrid
 from rtabmap_ros2.core.loop_validation import fits_inter_session_majority, judged_links, max_error_ratio
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.node_tables import PoseTable
@@ -41,24 +42,18 @@ from rtabmap_ros2.errors import RegistrationError
 
 log = logging.getLogger(__name__)
 
-# The local grid casts a node's scan again when its optimised pose moved by more than this
-# fraction of a cell (translation, or rotation moving the end of a range_max beam that much):
-# below it the grid drawn differs from one cast at the new pose by less than a quarter cell.
-# Issue 33: with 1 mm / 0.001 rad every re-optimisation after a loop closure (poses shifting by a
-# few mm) rebuilt the whole grid, 80-110 ms median a frame in the node on 50-frame sessions.
-GRID_RECAST_CELLS = 0.25
-# Longest beam assumed when grid.range_max is 0 (the scans' own range_max) (m).
-GRID_DEFAULT_RANGE_M = 5.0
 
 
 @dataclass
 class LocalMap:
-    """The optimised local map (2014 §II-C): WM nodes connected to the newest node."""
+    """The optimised local map (2014 §II-C): WM nodes connected to the newest node; ``scans``: the
+    laser scan of each node that has one (what its occupancy grid is drawn from)."""
 
     poses: dict[int, np.ndarray]
     links: list[Link]
     map_ids: dict[int, int]
     T_map_odom: np.ndarray
+    scans: dict[int, LaserScan] = field(default_factory=dict)
 
 
 class LocalMapper:
@@ -88,10 +83,7 @@ class LocalMapper:
         self.solved_version: Optional[int] = None
         self.wm_changed = True
         self._resolve_next = False
-        self._grid: Optional[GridAccumulator] = None
-        self._grid_cast: dict[int, tuple[np.ndarray, LaserScan]] = {}   # node -> (pose, scan) cast
-        # Nodes not cast at their current pose after the last grid() (a budget left them).
-        self.grid_pending = 0
+        self._grid = LocalGrid(params.grid)
 
     def neighbor_link(self, previous: Signature, new: Signature, T_odom: np.ndarray, info: np.ndarray) -> Link:
         """Neighbour link from odometry, refined by scan matching when enabled (planar, scans)."""
@@ -122,9 +114,12 @@ class LocalMapper:
         return assemble_scan_map(scans, params.scan_map_voxel_size)
 
     def snapshot(self) -> LocalMap:
-        """A copy of the local map (poses in the map frame) for publishing or export."""
+        """A copy of the local map (poses in the map frame) for publishing or export; the scans are
+        shared, not copied (never modified)."""
+        signatures = self.memory.signatures
+        scans = {n: signatures[n].scan for n in self.poses if n in signatures and signatures[n].scan is not None}
         return LocalMap(dict(self.poses), list(self.links), {n: self.memory.map_ids[n] for n in self.poses},
-                        self.T_map_odom.copy())
+                        self.T_map_odom.copy(), scans)
 
     def forget(self, nodes: list[int], transferred_to_ltm: bool = False) -> None:
         """Nodes that left WM (transferred to LTM, or merged into the previous location by
@@ -142,61 +137,19 @@ class LocalMapper:
         self.links = [link for link in self.links if not {link.from_id, link.to_id} & gone]
 
     def grid(self, max_casts: Optional[int] = None) -> Optional[OccupancyGrid]:
-        """Occupancy grid of the local map from the nodes' laser scans, or None without scans.
-
-        Incremental: new nodes are ray-cast into the previous grid; a node that left the local
-        map or whose optimised pose moved (more than :data:`GRID_RECAST_CELLS` of a cell) is taken
-        back out at the pose it was cast at and cast again at its new pose, so a frame costs the
-        scans that changed, not the whole map's. Without ``max_casts``, when most of them moved
-        (a loop closure) the grid is cast again from scratch, which is then cheaper.
-
-        With ``max_casts`` (the live node: a loop closure on a map of 700 nodes moved them all and
-        recasting them took 1-4 s of a frame), at most that many scans are cast (taken back or
-        added) per call: the nodes that left first, then the moved and new ones nearest the newest
-        node, so the grid around the robot is right first and the rest follows over the next
-        calls (``grid_pending`` says how many nodes are not cast at their current pose yet).
-        """
+        """Occupancy grid of the local map from the nodes' laser scans, or None without scans,
+        updated incrementally (:meth:`LocalGrid.update <rtabmap_ros2.core.local_grid.LocalGrid.update>`;
+        ``max_casts`` bounds the scans cast per call, ``grid_pending`` says how many wait)."""
+        if self._grid.params is not self.params.grid:   # other grid parameters: a grid of its own
+            self._grid = LocalGrid(self.params.grid)
         signatures = self.memory.signatures
-        scans = {n: signatures[n].scan for n in self.poses
-                 if n in signatures and signatures[n].scan is not None}
-        if not scans:
-            self.grid_pending = 0
-            return None
-        cast = self._grid_cast
-        tolerance_m = GRID_RECAST_CELLS * self.params.grid.resolution
-        tolerance_rad = tolerance_m / (self.params.grid.range_max or GRID_DEFAULT_RANGE_M)
-        left = [n for n in cast if n not in scans]
-        moved = {n for n in scans if n in cast
-                 and not _same_pose(cast[n][0], self.poses[n], tolerance_m, tolerance_rad)}
-        if self._grid is None or (max_casts is None and 2 * (len(left) + len(moved)) > len(cast)):
-            self._grid = GridAccumulator(self.params.grid)
-            cast.clear()
-            left, moved = [], set()
-        todo = [n for n in scans if n not in cast or n in moved]
-        budget = len(left) + len(todo) + len(moved) if max_casts is None else max(1, max_casts)
-        taken_back = 0
-        for node in left[:budget]:   # left the local map: taken back first
-            pose, scan = cast.pop(node)
-            self._grid.add(pose, scan, weight=-1)
-            taken_back += 1
-        budget -= taken_back
-        if max_casts is not None and len(todo) > budget:
-            robot = self.poses[max(self.poses)][:2, 3]
-            todo.sort(key=lambda n: float(np.linalg.norm(self.poses[n][:2, 3] - robot)))
-        done = 0
-        for node in todo:
-            cost = 2 if node in moved else 1
-            if cost > budget:
-                break
-            if node in moved:
-                pose, scan = cast.pop(node)
-                self._grid.add(pose, scan, weight=-1)
-            self._grid.add(self.poses[node], scans[node])
-            cast[node] = (self.poses[node], scans[node])
-            budget -= cost
-            done += 1
-        self.grid_pending = len(left) - taken_back + len(todo) - done
-        return self._grid.grid()
+        return self._grid.update(self.poses, {n: signatures[n].scan for n in self.poses if n in signatures},
+                                 max_casts)
+
+    @property
+    def grid_pending(self) -> int:
+        """Nodes not cast at their current pose after the last :meth:`grid`."""
+        return self._grid.pending
 
     def new_node_pose(self, node: int) -> Optional[np.ndarray]:
         """Pose in the current local map of the new node (not optimised yet: verification comes
@@ -499,9 +452,3 @@ def _rigid(T: np.ndarray, planar: bool) -> np.ndarray:
     out = np.array(T, dtype=float)
     out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     return out
-
-
-def _same_pose(a: np.ndarray, b: np.ndarray, tolerance_m: float, tolerance_rad: float) -> bool:
-    """Poses equal within what a grid cell can show (1 mm, 0.001 rad)."""
-    return bool(np.abs(a[:3, 3] - b[:3, 3]).max() < tolerance_m
-                and transforms.rotation_angle(transforms.relative(a, b)) < tolerance_rad)

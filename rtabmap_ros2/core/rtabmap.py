@@ -91,18 +91,22 @@ class Rtabmap:
     def map_id(self) -> int:
         return self.memory.map_id
 
-    def process(self, frame: SensorFrame, location_id: int | None = None) -> Statistics:
+    def process(self, frame: SensorFrame, location_id: int | None = None,
+                features: Optional[Features] = None) -> Statistics:
         """Process one frame (Alg. 1). Bad frames raise :class:`SensorDataError`, storing nothing.
 
         Args:
             frame: the synchronised sensor data.
             location_id: id to give the new location (e.g. the image index of ``detect``);
                 default: the next free id. Must be larger than every id already used.
+            features: the frame's features when extracted ahead (:func:`frame_features` with an
+                extractor of the same ``params.features``; the live node extracts the next frame's
+                while this one is processed); default: extracted here.
         """
         with collection_deferred():
-            return self._process(frame, location_id)
+            return self._process(frame, location_id, features)
 
-    def _process(self, frame: SensorFrame, location_id: int | None) -> Statistics:
+    def _process(self, frame: SensorFrame, location_id: int | None, features: Optional[Features]) -> Statistics:
         frame.validate(self.params.sync)
         if location_id is not None and location_id < self.memory.next_location_id:
             raise SensorDataError(
@@ -110,7 +114,8 @@ class Rtabmap:
         t_start = time.perf_counter()
         watch = Stopwatch()
         # Location creation (Alg. 2), lines 2-3: features (excluded from pTime, 2013 §IV).
-        features = self._extract(frame)
+        if features is None:
+            features = frame_features(self.extractor, frame)
         watch.lap("features")
         t_process = time.perf_counter()
         self.local.new_loops = []
@@ -201,11 +206,6 @@ class Rtabmap:
         self.close()
 
     # -- steps ---------------------------------------------------------------------------------
-    def _extract(self, frame: SensorFrame) -> Features:
-        if frame.rgb is None:
-            return self.extractor.empty()
-        return self.extractor.extract(frame.rgb)
-
     def _maybe_start_new_map(self, frame: SensorFrame) -> bool:
         """Multi-session (2014 §III): a new map on request or when odometry was reset (sessions.py)."""
         reason = self.sessions.new_map_reason(frame)
@@ -415,6 +415,13 @@ class Rtabmap:
         stats.vocabulary_size = len(memory.vocabulary)
         stats.words_added = memory.words_added
         stats.local_map_size = len(self.local.poses)
+
+
+def frame_features(extractor: FeatureExtractor, frame: SensorFrame) -> Features:
+    """The features of ``frame``'s RGB image (none without one): Alg. 2 lines 2-3."""
+    if frame.rgb is None:
+        return extractor.empty()
+    return extractor.extract(frame.rgb)
 
 
 def _delete_database(path: Path) -> None:

@@ -16,11 +16,12 @@ Sensor mounts and TF (:mod:`rtabmap_ros2.ros.frames`)
     to ``wait_for_transform``), and ``map_frame_id -> odom_frame_id`` broadcast at ``tf_publish_rate``
     stamped now + ``tf_delay`` (``publish_tf``); without it: ``base_to_laser`` / ``base_to_camera``.
 Publications (frame ``map_frame_id``)
-    ``mapPath`` (nav_msgs/Path: the optimised local map), ``map`` (nav_msgs/OccupancyGrid,
-    transient local; at most once per :data:`GRID_PERIOD_S`), ``mapGraph`` (visualization_msgs/MarkerArray), ``info``
-    (diagnostic_msgs/DiagnosticArray: one status ``rtabmap`` whose key/values are the frame's
-    ``Statistics.to_dict()`` plus the node's ``node_time_ms/<part>`` (the worker's time on the
-    previous frame by part, :mod:`rtabmap_ros2.ros.frame_times`), ``node_latency_ms``, ``node_frames_dropped``,
+    ``mapPath`` (nav_msgs/Path: the optimised local map, the newest when frames come faster than it is
+    published), ``map`` (nav_msgs/OccupancyGrid, transient local; at most once per :data:`GRID_PERIOD_S`),
+    ``mapGraph`` (visualization_msgs/MarkerArray), ``info`` (diagnostic_msgs/DiagnosticArray, one per
+    processed frame: one status ``rtabmap`` whose key/values are the frame's ``Statistics.to_dict()``
+    plus the node's ``node_time_ms/<part>`` (the worker's time on this frame by part and ``total``, the
+    other threads' last rounds, :mod:`rtabmap_ros2.ros.frame_times`), ``node_latency_ms``, ``node_frames_dropped``,
     ``node_messages_lost``, ``node_paused``, ``node_frame_errors`` and the dropped bad inputs
     ``node_dropped:<topic>:<reason>``, ``node_dropped_messages``), ``localization_pose``
     (geometry_msgs/PoseStamped, localization mode only).
@@ -34,18 +35,24 @@ Parameters
     every field of :class:`~rtabmap_ros2.core.params.Params` (see :mod:`rtabmap_ros2.ros.params`), and
     RTAB-Map's names (``-p Mem/STMSize:=10``); ``Mem/IncrementalMemory:=false`` starts in localization.
 
-Threads: sensor callbacks (one mutually exclusive group) convert each message and feed the one
-:class:`~rtabmap_ros2.core.sync.FrameSynchronizer` (a message it drops, e.g. when one stream lags
-seconds behind the others waiting for a DDS repair, is counted on ``info`` as
-``node_dropped:<topic>:sync_<reason>`` and the first of each logged); a completed set becomes a
-``SensorFrame`` put in a queue of :data:`FRAME_QUEUE_SIZE` frames (when it is full the oldest is dropped, counted in
-``frames_dropped`` and on ``info``, and the first drop is logged with the reason). The synchroniser already keeps one set per detection period, so the queue only
+Threads (issue 50: the worker does the core's work only). Sensor callbacks (one mutually exclusive
+group) convert each message and feed the one :class:`~rtabmap_ros2.core.sync.FrameSynchronizer` (a
+message it drops, e.g. when one stream lags seconds behind the others waiting for a DDS repair, is
+counted on ``info`` as ``node_dropped:<topic>:sync_<reason>`` and the first of each logged); a completed
+set becomes a ``SensorFrame`` put in a :class:`~rtabmap_ros2.ros.frame_queue.FrameQueue` of
+:data:`FRAME_QUEUE_SIZE` frames (when it is full the oldest is dropped, counted in ``frames_dropped`` and
+on ``info``, and the first drop is logged with the reason), whose own thread extracts the waiting
+frames' features ahead. The synchroniser already keeps one set per detection period, so the queue only
 absorbs sets that arrive together (a reliable transport repairing a lost sample releases the sets
-held behind it at once) instead of dropping all but the newest. One worker thread
-owns the core (SQLite connections belong to the thread that opened them): it creates the
-``Rtabmap``, runs ``process`` on the queued frames in order and publishes, and runs the services' core
-calls (reset, backup...) handed to it as commands. Services run in their own callback group, so a
-long export does not stall the sensors.
+held behind it at once) instead of dropping all but the newest. One worker thread owns the core
+(SQLite connections belong to the thread that opened them): it creates the ``Rtabmap``, runs
+``process`` on the queued frames in order with their features, takes a snapshot of the local map and
+hands both to the :class:`~rtabmap_ros2.ros.map_publisher.MapPublisher`, whose threads publish every
+frame's ``info`` and the newest local map (``mapPath``, ``mapGraph``, TF; the grid on ``map`` at most
+once per :data:`GRID_PERIOD_S`) without holding the worker; it also runs the services' core calls
+(reset, backup...) handed to it as commands. Services run in their own callback group, so a long
+export does not stall the sensors. The map depends on the frames only, not on the threads' timing.
+Where each thread's time goes: ``node_time_ms/<part>`` on ``info`` (:mod:`rtabmap_ros2.ros.frame_times`).
 
 Bad input (wrong encoding, short data, sizes that disagree, NaN/inf, depth or scans with (almost)
 no valid value, empty frame_id, timestamps going backwards, NaN odometry, a missing transform) is
@@ -98,6 +105,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, LaserScan
 from std_srvs.srv import Empty, Trigger
 from visualization_msgs.msg import MarkerArray
 
+from rtabmap_ros2.core.features import FeatureExtractor
 from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.core.sync import MIN_RESET_JUMP_S, FrameSynchronizer, SyncedSet
 from rtabmap_ros2.errors import DatabaseError, RtabmapError, SensorDataError
@@ -105,7 +113,9 @@ from rtabmap_ros2.io.bag import register_to_rgb
 from rtabmap_ros2.ros import conversions as conv
 from rtabmap_ros2.ros.frames import CAMERA, LASER, MapOdomBroadcaster, SensorMounts, import_tf2
 from rtabmap_ros2.ros.dropped import DroppedInputs
-from rtabmap_ros2.ros.frame_times import FrameTimer, FrameTimes
+from rtabmap_ros2.ros.frame_queue import FrameQueue, QueuedFrame
+from rtabmap_ros2.ros.frame_times import CALLBACKS, FrameTimer, FrameTimes
+from rtabmap_ros2.ros.map_publisher import MapPublisher, Outputs, Published
 from rtabmap_ros2.ros.params import declare_parameters
 from rtabmap_ros2.ros.subscriptions import GRAPH_CHECK_PERIOD_S, Candidate, StreamSubscriptions
 
@@ -124,16 +134,19 @@ SILENCE_CHECK_PERIOD_S = 1.0
 # (bench_node.py, load 5-8 on 2 cores) overflowed 10 frames by 1-4; 30 (about 60 MB of raw
 # 640x480 RGB-D) lets it catch up in order. Beyond, the oldest goes (logged once, counted on info).
 FRAME_QUEUE_SIZE = 30
-# The local occupancy grid is built and published at most once per this period of wall time:
-# just under the default 1 Hz detection period, so a 1 Hz robot gets one every frame despite
-# arrival jitter (at 1.0 s, half the frames of a 1x replay had none), while a bag replayed at 4x
-# gets one every 3-4 frames (the new scans cast together) and the worker keeps up. The grid was
-# the dominant part of the worker's time on info (issue 33).
+# The local occupancy grid is built and published (by the MapPublisher's grid thread, from the newest
+# local map) at most once per this period of wall time: just under the default 1 Hz detection
+# period, so a 1 Hz robot gets one every frame despite arrival jitter (at 1.0 s, half the frames of a
+# 1x replay had none), while a bag replayed at 4x gets one every 3-4 frames (the new scans cast
+# together). The grid was the dominant part of the worker's time on info (issue 33) before it left
+# the worker (issue 50).
 GRID_PERIOD_S = 0.9
-# Scans cast into the local grid per update at most (2-4 ms each here): after a loop closure
-# moved a large map, the grid around the robot is right first and the rest follows over the next
-# updates, instead of one frame recasting it all (1-4 s for 700 nodes, frames dropped at 4x).
-GRID_MAX_CASTS = 40
+# Scans cast into the local grid per update at most (3-15 ms each here, 2 cores, load 1-16): after a
+# loop closure moved a large map, the grid around the robot is right first and the rest follows over
+# the next updates, instead of one update recasting it all (1-4 s for 700 nodes). The grid thread
+# shares the two cores with the worker: 40 a 0.9 s update kept it busy 60 % of the time at load 16
+# (issue 50), 16 leaves room for 4x replay's 4 new nodes a second and a loop closure's recasting.
+GRID_MAX_CASTS = 16
 # Worker wake-up period when idle, so shutdown is noticed (s).
 WORKER_POLL_S = 0.1
 # Latencies kept for `latencies_s` (benchmarks).
@@ -258,13 +271,12 @@ class RtabmapNode(Node):
         # Bookkeeping read by tests and benchmarks.
         self.frames_processed = 0
         self.frames_dropped = 0          # pushed out of the full frame queue before being processed
+        self.rehearsal_merges = 0        # processed frames merged into the previous node (no new node)
         self.dropped = DroppedInputs(self.get_logger())
         self.bad_messages = self.dropped.counts   # (topic, reason) -> dropped inputs
         self.messages_lost: dict[str, int] = {}   # topic -> messages lost in transport (DDS gaps)
         self.latencies_s: deque[float] = deque(maxlen=LATENCY_HISTORY)
-        self.frame_times = FrameTimes(LATENCY_HISTORY)   # the worker's time per frame, by part
-        self.frame_queue_size = FRAME_QUEUE_SIZE
-        self._last_grid_time = -float("inf")   # when the worker last built the local grid (monotonic s)
+        self.frame_times = FrameTimes(LATENCY_HISTORY)   # each thread's time per frame, by part
         self.frame_errors: dict[str, int] = {}   # unexpected errors while processing, per kind
         self.fatal_error: Optional[BaseException] = None
         self.last_statistics = None
@@ -289,8 +301,9 @@ class RtabmapNode(Node):
         # order, so the driver's first camera_info can come just after its images. Held, not dropped.
         self._waiting_for_camera: tuple[SyncedSet, float] | None = None
 
-        # Worker: a bounded queue of frames (oldest dropped when full) and the services' commands.
-        self._frames: deque[tuple[SensorFrame, float]] = deque()
+        # Worker: a bounded queue of frames (oldest dropped when full; features extracted ahead) and the
+        # services' commands.
+        self._frames = FrameQueue(lambda: FeatureExtractor(self.params.features), FRAME_QUEUE_SIZE, self.frame_times)
         self._commands: list[_Command] = []
         self._worker_lock = threading.Lock()
         self._wake = threading.Event()
@@ -305,6 +318,7 @@ class RtabmapNode(Node):
         self._core_ready.wait()
         if self._core_error is not None:
             self._stop.set()
+            self._frames.stop()
             super().destroy_node()
             raise self._core_error
         self.get_logger().info(f"database {self.database_path} (map {self._core.map_id})")
@@ -318,6 +332,15 @@ class RtabmapNode(Node):
                                if tf2 is not None and p.publish_tf else None)
         self._subscribe(p)
         self._advertise()
+
+    @property
+    def frame_queue_size(self) -> int:
+        """Frames waiting for the worker at most (FRAME_QUEUE_SIZE)."""
+        return self._frames.size
+
+    @frame_queue_size.setter
+    def frame_queue_size(self, size: int) -> None:
+        self._frames.size = size
 
     # -- subscriptions -------------------------------------------------------------------------
     def _subscribe(self, p) -> None:
@@ -395,6 +418,13 @@ class RtabmapNode(Node):
         return on_message
 
     def _on_message(self, stream: str, msg, convert: Callable) -> None:
+        timer = FrameTimer()
+        with timer.part(stream):
+            self._take_message(stream, msg, convert)
+        self.frame_times.add(timer, CALLBACKS)
+
+    def _take_message(self, stream: str, msg, convert: Callable) -> None:
+        """One sensor message: converted, then fed to the synchroniser (camera_info kept aside)."""
         topic = self.subscriptions_.topic(stream)
         arrival = time.monotonic()
         self._last_arrival[stream] = arrival
@@ -447,12 +477,9 @@ class RtabmapNode(Node):
             return
         if self.paused:
             return
-        with self._worker_lock:
-            dropped = len(self._frames) >= self.frame_queue_size
-            if dropped:
-                self._frames.popleft()
-                self.frames_dropped += 1
-            self._frames.append((frame, arrival))
+        dropped = self._frames.put(frame, arrival)
+        if dropped:
+            self.frames_dropped += 1
         self._wake.set()
         if dropped and self.frames_dropped == 1:
             self.get_logger().warning(
@@ -477,23 +504,34 @@ class RtabmapNode(Node):
         self._bad(self._topics.get(exc.source, "synchronised set"), exc.reason, str(exc))
 
     def _check_silence(self) -> None:
-        """Warn once per silence when an expected topic has been quiet for topic_timeout_s."""
+        """Warn once per silence when an expected topic has been quiet for topic_timeout_s.
+
+        Quiet since its last message, or since its subscription was made when none came yet: with qos
+        or image_transport ``auto`` a stream is subscribed when its publisher is discovered, which
+        under load can be seconds after the node started, and its first messages need the publisher
+        to match the new subscription (issue 50: ``/rgb/camera_info`` was reported silent for 5 s
+        counted from the node's start while it had been subscribed for less)."""
         timeout = self.params.node.topic_timeout_s
         now = time.monotonic()
         if now - self._start_time < timeout:
             return
-        silent = [s for s in self._topics
-                  if now - self._last_arrival.get(s, self._start_time) >= timeout and s not in self._silence_warned]
-        if not silent:
+        since = self.subscriptions_.since
+        quiet = {s: now - max(self._last_arrival.get(s, self._start_time), since.get(s, self._start_time))
+                 for s in self._topics if s not in self._silence_warned}
+        if not any(q >= timeout for q in quiet.values()):
             return
+        # With them, the streams the next check would report (subscribed a moment later): one warning.
+        silent = [s for s, q in quiet.items() if q >= timeout - SILENCE_CHECK_PERIOD_S]
         self._silence_warned.update(silent)
-        arrived = [self._topics[s] for s in self._topics if now - self._last_arrival.get(s, -1e18) < timeout]
+        arrived = [s for s in self._topics if now - self._last_arrival.get(s, -1e18) < timeout]
         unpublished = [s for s in silent if s not in self.subscriptions_.current]
+        waiting = ("; image frames wait for a camera_info (the newest is held)"
+                   if "camera_info" in silent and {"rgb", "depth"} & set(arrived) else "")
         self.get_logger().warning(
             f"no message for {timeout:g} s on {', '.join(self.subscriptions_.topics_text(s) for s in silent)}; "
-            f"receiving: {', '.join(arrived) if arrived else 'nothing'}"
+            f"receiving: {', '.join(self._topics[s] for s in arrived) if arrived else 'nothing'}"
             + (f"; no publisher at all on {', '.join(self.subscriptions_.topics_text(s) for s in unpublished)}"
-               if unpublished else "")
+               if unpublished else "") + waiting
             + ". Check the topic names, remapping, image_transport and QoS (parameter qos: auto, reliable or "
               "sensor_data), or turn the input off (subscribe_*).")
 
@@ -513,15 +551,16 @@ class RtabmapNode(Node):
         try:
             while True:
                 self._wake.wait(WORKER_POLL_S)
+                self._wake.clear()   # before looking: a frame or command added after is not missed
                 with self._worker_lock:
-                    item = self._frames.popleft() if self._frames else None
                     commands, self._commands = self._commands, []
-                    if not self._frames:
-                        self._wake.clear()
                 for command in commands:
                     command.run()
+                item = self._frames.pop()
+                if len(self._frames):
+                    self._wake.set()
                 if item is not None and not self._stop.is_set():
-                    self._process(*item)
+                    self._process(item)
                 if self.fatal_error is not None:
                     break
                 if self._stop.is_set():
@@ -547,15 +586,15 @@ class RtabmapNode(Node):
         self._wake.set()
         return command.result(self.params.node.service_timeout_s)
 
-    def _process(self, frame: SensorFrame, arrival: float) -> None:
+    def _process(self, item: QueuedFrame) -> None:
         """Process one frame; any error is contained here (the worker goes on) unless unrecoverable."""
         try:
-            self._process_frame(frame, arrival)
+            self._process_frame(item)
         except Exception as exc:  # noqa: BLE001 - the worker must survive a gtsam/numpy/sqlite/cv2 error
             if unrecoverable(exc):
                 self._fail(exc)
             else:
-                self._frame_error(frame, exc)
+                self._frame_error(item.frame, exc)
 
     def _frame_error(self, frame: SensorFrame, exc: Exception) -> None:
         """An unexpected error in one frame: counted per kind, logged once per kind with its traceback."""
@@ -577,21 +616,18 @@ class RtabmapNode(Node):
             f"it): {type(exc).__name__}: {exc}\n" + "".join(traceback.format_exception(exc)).rstrip())
         self.context.try_shutdown()
 
-    def _process_frame(self, frame: SensorFrame, arrival: float) -> None:
-        timer = FrameTimer()
+    def _process_frame(self, item: QueuedFrame) -> None:
+        """The worker's part of a frame (the critical path): its features (extracted ahead), the core,
+        a snapshot of the local map; the rest is published beside it (MapPublisher)."""
+        frame, timer = item.frame, FrameTimer()
         try:
+            with timer.part("wait"):
+                features = self._frames.features(item, self._core.extractor)
             with timer.part("process"):
-                stats = self._core.process(frame)
+                stats = self._core.process(frame, features=features)
             with timer.part("local_map"):
                 local = self._core.local_map()
-            with timer.part("local_grid"):
-                now = time.monotonic()
-                grid = None
-                if frame.scan is not None and now - self._last_grid_time >= GRID_PERIOD_S:
-                    grid = self._core.local_grid(max_casts=GRID_MAX_CASTS)
-                    self._last_grid_time = now
-            localization_pose = getattr(self._core, "localization_pose", None)
-            localization = self._core.localization_mode
+            localization_pose = self._core.localization_pose if self._core.localization_mode else None
         except SensorDataError as exc:
             self._bad_frame(exc)
             return
@@ -601,31 +637,17 @@ class RtabmapNode(Node):
             self.get_logger().error(f"frame at {frame.stamp_ns / NS_PER_S:.9f} s not processed: {exc}")
             return
         self.frames_processed += 1
+        self.rehearsal_merges += int(bool(stats.merged_id))
         self.last_statistics = stats
-        stamp = frame.stamp_ns
-        map_frame = self.params.node.map_frame_id
-        with timer.part("path"):
-            self._pub_path.publish(conv.path_to_msg(local.poses, stamp, map_frame))
-        latency = time.monotonic() - arrival
-        self.latencies_s.append(latency)
-        with timer.part("map"):
-            if grid is not None:
-                self._pub_map.publish(conv.grid_to_msg(grid, stamp, map_frame))
-        with timer.part("markers"):
-            self._pub_graph.publish(conv.graph_to_markers(local.poses, local.links, stamp, map_frame))
-        with timer.part("tf"):
-            if self.tf_broadcaster is not None:
-                self.tf_broadcaster.update(local.T_map_odom)
-            if localization and localization_pose is not None:
-                self._pub_localization.publish(
-                    PoseStamped(header=conv.header(stamp, map_frame), pose=conv.pose_to_msg(localization_pose)))
-        with timer.part("info"):
-            extra = {"node_latency_ms": round(latency * 1e3, 3), "node_frames_dropped": self.frames_dropped,
-                     "node_messages_lost": sum(self.messages_lost.values()), "node_paused": self.paused,
-                     "node_frame_errors": sum(self.frame_errors.values()), **self.dropped.info(),
-                     **self.frame_times.info()}
-            self._pub_info.publish(conv.statistics_to_msg({**stats.to_dict(), **extra}, stamp, map_frame))
-        self.frame_times.add(timer)
+        row = self.frame_times.add(timer)
+        self._publisher.submit(Published(frame.stamp_ns, item.arrival, stats.to_dict(), local, localization_pose,
+                                         FrameTimes.info_of(row), self._publisher.generation))
+
+    def _info_counters(self) -> dict[str, Any]:
+        """The node's counters on every ``info``."""
+        return {"node_frames_dropped": self.frames_dropped, "node_messages_lost": sum(self.messages_lost.values()),
+                "node_paused": self.paused, "node_frame_errors": sum(self.frame_errors.values()),
+                **self.dropped.info()}
 
     # -- publishers and services ---------------------------------------------------------------
     def _advertise(self) -> None:
@@ -636,6 +658,11 @@ class RtabmapNode(Node):
         self._pub_graph = self.create_publisher(MarkerArray, "mapGraph", QUEUE_DEPTH)
         self._pub_info = self.create_publisher(DiagnosticArray, "info", QUEUE_DEPTH)
         self._pub_localization = self.create_publisher(PoseStamped, "localization_pose", QUEUE_DEPTH)
+        self._publisher = MapPublisher(
+            Outputs(self._pub_path, self._pub_graph, self._pub_map, self._pub_info, self._pub_localization,
+                    self.tf_broadcaster, self.params.node.map_frame_id, self._info_counters,
+                    self.get_logger().error),
+            self.params.grid, self.frame_times, self.latencies_s, GRID_PERIOD_S, GRID_MAX_CASTS)
         group = self._service_group
         self.create_service(GetMap, "get_map", self._get_map, callback_group=group)
         self.create_service(Trigger, "export_global_map", self._export_global_map, callback_group=group)
@@ -677,16 +704,20 @@ class RtabmapNode(Node):
 
     def reset(self) -> None:
         """Forget everything (database deleted and restarted) and clear the published map."""
-        with self._worker_lock:
-            self._frames.clear()
-        self._in_worker(lambda: self._core.reset(), "reset")
+        self._frames.clear()
+
+        def reset_core() -> None:   # in the worker, between frames: the maps handed over before are old
+            self._core.reset()
+            self._publisher.reset()
+        self._in_worker(reset_core, "reset")
         with self._sync_lock:
             self._sync.reset()
         self._last_stamp.clear()
         stamp = self.get_clock().now().nanoseconds
         map_frame = self.params.node.map_frame_id
-        self._pub_path.publish(conv.path_to_msg({}, stamp, map_frame))
-        self._pub_graph.publish(conv.graph_to_markers({}, [], stamp, map_frame))
+        with self._publisher.round_lock:   # after the publishing round under way, if any
+            self._pub_path.publish(conv.path_to_msg({}, stamp, map_frame))
+            self._pub_graph.publish(conv.graph_to_markers({}, [], stamp, map_frame))
         self.get_logger().info(f"reset: {self.database_path} emptied")
 
     def backup(self) -> Path:
@@ -773,6 +804,8 @@ class RtabmapNode(Node):
         self._stop.set()
         self._wake.set()
         self._worker.join()   # finishes the frame in flight, then flushes and closes the database
+        self._frames.stop()
+        self._publisher.stop()
         self.get_logger().info(f"database {self.database_path} flushed and closed "
                                f"({self.frames_processed} frames processed, {self.frames_dropped} dropped)")
         super().destroy_node()

@@ -20,6 +20,7 @@ a fixed one at once.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -74,6 +75,7 @@ class StreamSubscriptions:
         self._log = log
         self.candidates: dict[str, list[Candidate]] = {}
         self.current: dict[str, tuple[Candidate, ReliabilityPolicy]] = {}
+        self.since: dict[str, float] = {}   # stream -> when its current subscription was made (monotonic s)
         self._subscriptions: dict[str, object] = {}
         self.changes = 0
 
@@ -109,6 +111,7 @@ class StreamSubscriptions:
             self._subscriptions[stream] = self._create(stream, candidate, qos_profile(reliability))
             previous = self.current.get(stream)
             self.current[stream] = choice
+            self.since[stream] = time.monotonic()
             self.changes += 1
             why = {"auto": "every publisher is reliable" if reliability == ReliabilityPolicy.RELIABLE
                    else "a publisher is best effort"}.get(self._qos, f"qos {self._qos}")

@@ -4,7 +4,8 @@ Driving: a pure-pursuit controller follows the route (shortest paths between the
 at :data:`CONTROL_DT_S`; it slows down and turns in place when the heading error is large (door
 entries, U-turns), which gives smooth turns. The robot stops for a few seconds in rooms and some
 open areas (repeated images there: weights grow by rehearsal, 2013 §III-C). Poses are sampled at
-1 Hz, as in 2014 §III (R = 1 s).
+1 Hz, as in 2014 §III (R = 1 s), or at another frame rate (``frame_period_s``: a driver publishing
+faster than the detection rate).
 
 Wheel odometry (:func:`wheel_odometry`): the ground-truth motion between consecutive 1 Hz
 frames ``(dx, dy, dyaw)`` (previous base frame) is corrupted and integrated from identity:
@@ -138,13 +139,14 @@ def _densify(polyline: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def drive(route_xy: np.ndarray, stops: dict[int, float], rng: np.random.Generator,
-          speed_mps: float | None = None) -> Trajectory:
-    """Follow a route with pure pursuit; return the 1 Hz ground truth.
+          speed_mps: float | None = None, frame_period_s: float = FRAME_PERIOD_S) -> Trajectory:
+    """Follow a route with pure pursuit; return the ground truth sampled every ``frame_period_s``.
 
     Args:
         route_xy: (K,2) route vertices (m, world frame).
         stops: route vertex index -> stop duration (s) when the robot reaches it.
         rng: draws the nominal speed when ``speed_mps`` is None.
+        frame_period_s: time between frames (s; 1 Hz by default), a multiple of :data:`CONTROL_DT_S`.
     """
     if speed_mps is None:
         speed_mps = float(rng.uniform(*SPEED_RANGE_MPS))
@@ -158,7 +160,9 @@ def drive(route_xy: np.ndarray, stops: dict[int, float], rng: np.random.Generato
     progress = 0
     stopped_until = -1.0
     done_stops: set[int] = set()
-    steps_per_frame = int(round(FRAME_PERIOD_S / CONTROL_DT_S))
+    steps_per_frame = int(round(frame_period_s / CONTROL_DT_S))
+    if steps_per_frame < 1 or abs(steps_per_frame * CONTROL_DT_S - frame_period_s) > 1e-6:
+        raise RtabmapError(f"frame period {frame_period_s} s is not a multiple of the control step {CONTROL_DT_S} s")
     samples, times = [], []
     step = 0
     while True:
@@ -204,16 +208,19 @@ def drive(route_xy: np.ndarray, stops: dict[int, float], rng: np.random.Generato
                       speed_mps=speed_mps)
 
 
-def plan_trajectory(world: World, goals: tuple[str, ...], rng: np.random.Generator) -> Trajectory:
-    """Route through ``goals``, stops of a few seconds at the goals in STOP_NODES, then drive."""
+def plan_trajectory(world: World, goals: tuple[str, ...], rng: np.random.Generator,
+                    frame_period_s: float = FRAME_PERIOD_S) -> Trajectory:
+    """Route through ``goals``, stops of a few seconds at the goals in STOP_NODES, then drive
+    (frames every ``frame_period_s``)."""
     route, goal_positions = plan_route(world, goals)
     stops = {pos: float(rng.uniform(*STOP_DURATION_RANGE_S))
              for g, pos in zip(goals, goal_positions) if g in STOP_NODES}
-    return drive(route, stops, rng)
+    return drive(route, stops, rng, frame_period_s=frame_period_s)
 
 
 def step_covariance(speed_mps: float) -> np.ndarray:
-    """6x6 covariance (x y z roll pitch yaw) of one 1 s odometry increment at ``speed_mps``."""
+    """6x6 covariance (x y z roll pitch yaw) of one 1 s odometry increment at ``speed_mps`` (the
+    neighbour link between two nodes a detection period apart, whatever the frame rate)."""
     d = speed_mps * FRAME_PERIOD_S
     var_xy = (ODOM_TRANSLATION_SIGMA * d) ** 2 + (ODOM_LATERAL_SIGMA * d) ** 2
     var_yaw = (ODOM_YAW_PER_METRE_SIGMA * d) ** 2 + (ODOM_YAW_BIAS_SIGMA * d) ** 2

@@ -48,7 +48,7 @@ from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.errors import RtabmapError
 from rtabmap_ros2.sim.render import SensorRig, render_rgbd, render_scan, sensor_rig
 from rtabmap_ros2.sim.robot import (
-    SESSION_PLANS, SMALL_SESSION_PLANS, Trajectory, plan_trajectory, step_covariance, wheel_odometry,
+    FRAME_PERIOD_S, SESSION_PLANS, SMALL_SESSION_PLANS, Trajectory, plan_trajectory, step_covariance, wheel_odometry,
 )
 from rtabmap_ros2.sim.world import KIND_NAMES, World, build_world
 
@@ -113,7 +113,8 @@ class SimulationSummary:
 
 def make_sessions(world: World, sessions: Optional[int] = None, small: bool = False,
                   session_gap_s: float = SESSION_GAP_S,
-                  plans: Optional[tuple[tuple[str, ...], ...]] = None) -> list[SessionTruth]:
+                  plans: Optional[tuple[tuple[str, ...], ...]] = None,
+                  frame_rate_hz: float = 1.0 / FRAME_PERIOD_S) -> list[SessionTruth]:
     """Ground truth and odometry of the sessions (all 5 by default, the 2 short ones with ``small``).
 
     Session k starts ``session_gap_s`` after session k-1 started (0: all at once, as a fleet).
@@ -123,7 +124,13 @@ def make_sessions(world: World, sessions: Optional[int] = None, small: bool = Fa
     More sessions than plans (long runs: ``--sessions 30`` is about 10,000 frames) drive the plans
     again in turn, each time with its own speeds, stops and odometry noise (session k's random
     draws), in the same building: session 6 revisits session 1's route.
+
+    ``frame_rate_hz`` (1 by default) samples the same drives faster: at 2 Hz twice the frames, as a
+    driver publishing faster than the detection rate (the odometry covariance stays that of a 1 s
+    increment, the neighbour link between nodes one detection period apart).
     """
+    if not frame_rate_hz > 0:
+        raise RtabmapError(f"frame rate {frame_rate_hz} Hz is out of range: > 0")
     plans = plans or (SMALL_SESSION_PLANS if small else SESSION_PLANS)
     sessions = len(plans) if sessions is None else sessions
     if sessions < 1:
@@ -132,7 +139,7 @@ def make_sessions(world: World, sessions: Optional[int] = None, small: bool = Fa
     for k in range(1, sessions + 1):
         rng = np.random.default_rng([world.seed, k, int(small)])
         plan = plans[(k - 1) % len(plans)]
-        traj = plan_trajectory(world, plan, rng)
+        traj = plan_trajectory(world, plan, rng, frame_period_s=1.0 / frame_rate_hz)
         start_ns = START_STAMP_S * NS_PER_S + int(round((k - 1) * session_gap_s * NS_PER_S))
         stamps = start_ns + np.round(traj.times_s * NS_PER_S).astype(np.int64)
         out.append(SessionTruth(index=k, plan=plan, stamps_ns=stamps, T_world_base=traj.poses,
@@ -281,7 +288,8 @@ def _write_session_bag(out_dir: Path, seed: int, session: SessionTruth, raw_imag
 
 def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool = False, jobs: Optional[int] = None,
              raw_images: bool = False, laser_mount=None, camera_mount=None,
-             tf_static: bool = True, session_gap_s: float = SESSION_GAP_S) -> SimulationSummary:
+             tf_static: bool = True, session_gap_s: float = SESSION_GAP_S,
+             frame_rate_hz: float = 1.0 / FRAME_PERIOD_S) -> SimulationSummary:
     """Write the bags, ground truth, revisits, plot and summary of a simulated multi-session run.
 
     Args:
@@ -298,6 +306,8 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
             user who forgot it; the mounts must then be given to ``map`` / the node).
         session_gap_s: time between the starts of consecutive sessions (s, >= 0; 0: robots mapping
             at the same time, each in its own bag).
+        frame_rate_hz: frames per second of every stream (1 by default; 2: twice the frames of the
+            same drives, as a driver faster than the 1 Hz detection rate).
     """
     if not session_gap_s >= 0:
         raise RtabmapError(f"session gap {session_gap_s} s is out of range: >= 0")
@@ -310,7 +320,7 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
             raise RtabmapError(f"{out / f'session_{k}'} already exists: remove it or choose another --out")
     rig = sensor_rig(laser_mount, camera_mount)
     world = build_world(seed)
-    truths = make_sessions(world, sessions, small, session_gap_s)
+    truths = make_sessions(world, sessions, small, session_gap_s, frame_rate_hz=frame_rate_hz)
     jobs = jobs or min(2, os.cpu_count() or 1)
     if jobs > 1 and sessions > 1:
         with ProcessPoolExecutor(max_workers=min(jobs, sessions), initializer=_init_worker, initargs=(seed,)) as pool:
@@ -350,6 +360,7 @@ def simulate(out_dir, sessions: Optional[int] = None, seed: int = 0, small: bool
     }
     info["images"] = "raw" if raw_images else "jpeg+png"
     info["session_gap_s"] = session_gap_s
+    info["frame_rate_hz"] = frame_rate_hz
     info["mounts"] = {"base_to_laser": [round(float(v), 6) for v in transforms.to_xyz_rpy(rig.T_base_laser)],
                       "base_to_camera": [round(float(v), 6) for v in transforms.to_xyz_rpy(rig.camera.T_base_camera)],
                       "tf_static": tf_static}

@@ -210,13 +210,17 @@ def test_mapping_publishes_path_map_graph_info(harness, frames):
     infos = [harness.feed(f) for f in frames]
     assert [int(i["location_id"]) > 0 for i in infos] == [True] * len(frames)
     assert all(float(i["node_latency_ms"]) >= 0 for i in infos)
-    # The worker's time on the previous frame, by part (none yet on the first frame's info).
-    parts = ("process", "local_map", "local_grid", "path", "map", "markers", "tf", "info")
-    assert not any(k.startswith("node_time_ms/") for k in infos[0])
-    for info in infos[1:]:
-        times = {part: float(info[f"node_time_ms/{part}"]) for part in parts}
+    # The worker's time on this frame, by part, and its total; the publisher's last round beside it
+    # (none before its first round).
+    worker = ("wait", "process", "local_map")
+    for info in infos:
+        times = {part: float(info[f"node_time_ms/{part}"]) for part in worker}
         assert all(ms >= 0 for ms in times.values()) and times["process"] > 0
         assert float(info["node_time_ms/total"]) == pytest.approx(sum(times.values()), abs=0.01)
+    assert not any(k.startswith("node_time_ms/path") for k in infos[0])
+    for info in infos[1:]:
+        assert all(float(info[f"node_time_ms/{part}"]) >= 0 for part in ("path", "markers", "tf", "info"))
+    assert any("node_time_ms/local_grid" in info and "node_time_ms/map" in info for info in infos)
     t = harness.tester
     assert wait_for(lambda: t.count("mapPath") >= len(frames) and t.count("mapGraph") >= len(frames))
     path = t.last("mapPath")
@@ -274,6 +278,43 @@ def test_frames_completed_together_are_all_processed(harness, frames):
     stamps = [m.header.stamp for m in t.received["info"]]
     assert stamps == [conv.header(f.stamp_ns, "map").stamp for f in burst[2:]]
     assert not node.messages_lost   # reliable, in one process: nothing lost in transport
+
+
+def test_frames_arriving_fast_are_all_processed_into_the_map_the_core_makes_alone(context, tmp_path, frames):
+    """Sets completing faster than the worker processes them (features extracted ahead by the frame
+    queue's thread, the maps published beside the worker) are all processed, in order, into the same
+    map as the core makes of the same frames one by one: the threads change the timing, not the map."""
+    from rtabmap_ros2.core.rtabmap import Rtabmap
+
+    # No time-driven memory management: the same frames must make the same map on a loaded machine.
+    h = Harness(context, tmp_path, **{"memory.time_threshold_ms": 0.0})
+    node, t = h.node, h.tester
+    seen = []
+    process = node._core.process
+
+    def recorded(frame, **kwargs):
+        seen.append(frame)
+        return process(frame, **kwargs)
+
+    node._core.process = recorded
+    try:
+        for i, f in enumerate(frames, 1):
+            t.publish_frame(f)   # the next set as soon as this one is synchronised, not processed
+            assert wait_for(lambda: node._sync.emitted == i), node._sync.dropped
+        assert wait_for(lambda: t.count("info") == len(frames))
+        infos = t.infos()
+        assert node.frames_processed == len(frames) and node.frames_dropped == 0
+        assert [m.header.stamp for m in t.received["info"]] == [conv.header(f.stamp_ns, "map").stamp for f in frames]
+        assert wait_for(lambda: t.count("mapPath") and len(t.last("mapPath").poses) == int(infos[-1]["local_map_size"]))
+        path = np.stack([conv.pose_from_msg(p.pose) for p in t.last("mapPath").poses])
+    finally:
+        h.close()
+    with Rtabmap(node.params, tmp_path / "alone.db") as alone:
+        stats = [alone.process(f) for f in seen]
+        local = alone.local_map()
+    assert [s.location_id for s in stats] == [int(i["location_id"]) for i in infos]
+    assert [s.merged_id for s in stats] == [int(i["merged_id"]) for i in infos]
+    np.testing.assert_allclose(path, np.stack([local.poses[n] for n in sorted(local.poses)]), atol=1e-9)
 
 
 def test_first_frame_waits_for_a_late_camera_info(harness, frames):
@@ -449,6 +490,43 @@ def test_silent_topics_are_reported_once(context, tmp_path, frames, capfd):
     assert len(overflow) == 1 and "has sent nothing yet" in overflow[0] and "heartbeat" in overflow[0], err
 
 
+def test_a_topic_subscribed_late_is_not_reported_silent_before_it_had_time(context, tmp_path, frames, capfd):
+    """With qos auto a stream is subscribed when its publisher appears (under load, seconds after the
+    node started): its silence counts from that subscription, not from the node's start (issue 50:
+    /rgb/camera_info reported silent for 5 s while it had been subscribed for less)."""
+    timeout = 2.0
+    h = Harness(context, tmp_path, qos="auto", topic_timeout_s=timeout)
+    late = Node("late_camera_driver", context=context)
+    h.executor.add_node(late)
+    try:
+        start = h.node._start_time
+        camera_pub = None
+        f = frames[0]
+        while time.monotonic() - start < timeout + 1.5:
+            age = time.monotonic() - start
+            if camera_pub is None and age >= timeout - 0.4:   # the driver's camera_info appears late...
+                camera_pub = late.create_publisher(CameraInfo, "rgb/camera_info", RELIABLE)
+            stamp = time.time_ns()
+            for name in ("odom", "scan", "rgb", "depth"):
+                msg = {"odom": lambda: conv.odometry_to_msg(f.T_odom_base, stamp),
+                       "scan": lambda: conv.scan_to_msg(f.scan, stamp, "laser"),
+                       "rgb": lambda: conv.image_to_msg(f.rgb, stamp, "camera_optical", "bgr8"),
+                       "depth": lambda: conv.depth_to_msg(f.depth_m, stamp, "camera_optical")}[name]()
+                h.tester.pubs[name].publish(msg)
+            if camera_pub is not None and age >= timeout + 0.6:   # ...and publishes a moment after
+                camera_pub.publish(conv.camera_info_to_msg(f.camera, stamp, "camera_optical"))
+            time.sleep(0.1)
+        assert "camera_info" in h.node.subscriptions_.current
+        assert wait_for(lambda: "camera_info" in h.node._last_arrival)
+        assert "camera_info" not in h.node._silence_warned
+    finally:
+        h.executor.remove_node(late)
+        time.sleep(4 * SPIN_WAIT_S)
+        late.destroy_node()
+        h.close()
+    assert "no message for" not in capfd.readouterr().err
+
+
 # -- across processes ------------------------------------------------------------------------------
 
 @contextlib.contextmanager
@@ -546,11 +624,11 @@ def test_unexpected_error_in_a_frame_is_logged_once_and_the_node_goes_on(harness
     process = node._core.process
     failures = []
 
-    def flaky(frame):
+    def flaky(frame, **kwargs):
         if len(failures) < 2:   # the first two frames hit a bug deep in the core
             failures.append(frame.stamp_ns)
             return np.linalg.inv(np.zeros((3, 3)))
-        return process(frame)
+        return process(frame, **kwargs)
 
     node._core.process = flaky
     harness.tester.publish_frame(frames[0])
@@ -588,7 +666,7 @@ import sys
 from rtabmap_ros2.core.rtabmap import Rtabmap
 from rtabmap_ros2.errors import DatabaseError
 
-def process(self, frame):
+def process(self, frame, **kwargs):
     raise DatabaseError("write to database failed: database or disk is full")
 
 Rtabmap.process = process   # the disk fills up at the first frame

@@ -207,6 +207,31 @@ def test_play_small_messages_keep_pace_with_raw_images(ros_env, context, raw_ses
         node.destroy_node()
     assert play.returncode == 0, play.stderr
     assert {t: len(v) for t, v in received.items()} == {t: n for t, (_, n) in topics.items()}
-    longest = {t: float(np.diff(v).max()) for t, v in received.items()}
-    # Frames every 0.25 s at 4x: a gap of over 1.2 s is a repair wait, not the recording's pace.
-    assert max(longest.values()) < 1.2, longest
+    held = _longest_hold(received)
+    # Frames every 0.25 s at 4x: a topic silent for over 1.2 s while the others flow is a repair
+    # wait, not the recording's pace (nor the machine's load: see _longest_hold).
+    assert max(held.values()) < 1.2, {"held_s": held, "longest_gap_s": {t: float(np.diff(v).max())
+                                                                      for t, v in received.items()}}
+
+
+# The other topics' messages arrive at most this far apart while they flow (frames every 0.25 s at 4x).
+FLOW_GAP_S = 0.5
+
+
+def _longest_hold(received: dict[str, list[float]]) -> dict[str, float]:
+    """Per topic, the longest time it stayed silent while the other topics kept arriving (s).
+
+    Between two of its messages, the intervals between consecutive arrivals of any topic are summed,
+    leaving out those longer than FLOW_GAP_S: a pause of the player or of this process (a loaded
+    machine) holds every topic at once and is not counted; a reliable reader holding one topic for
+    a repair while the images keep coming (Fast DDS's 3 s heartbeat) is.
+    """
+    out = {}
+    for topic, times in received.items():
+        others = np.sort(np.concatenate([v for t, v in received.items() if t != topic]))
+        longest = 0.0
+        for a, b in zip(times[:-1], times[1:]):
+            steps = np.diff(np.r_[a, others[(others > a) & (others < b)], b])
+            longest = max(longest, float(steps[steps < FLOW_GAP_S].sum()))
+        out[topic] = longest
+    return out
