@@ -151,3 +151,21 @@ def test_import_cycle_is_found_through_a_chain_of_type_checking_and_relative_imp
     assert import_cycle(graph) == ["pkg.a", "pkg.sub.b", "pkg.sub.c", "pkg.a"]
     (pkg / "sub" / "c.py").write_text("import pkg.sub\n")  # the chain broken: no cycle
     assert import_cycle(import_graph(tmp_path, "pkg")) is None
+
+
+def test_the_local_mapper_is_what_loop_validation_reads_of_the_local_map(tmp_path):
+    # The local_map <-> loop_validation circle was cut by a Protocol: loop_validation names what it
+    # reads of the local map, local_map's LocalMapper must keep providing it.
+    from rtabmap_ros2.core.database import Database
+    from rtabmap_ros2.core.local_map import LocalMapper
+    from rtabmap_ros2.core.loop_validation import LocalMapView
+    from rtabmap_ros2.core.memory import Memory
+    from rtabmap_ros2.core.params import Params
+
+    members = {name for name in vars(LocalMapView) if not name.startswith("_")} | set(LocalMapView.__annotations__)
+    assert members == {"planar", "T_world_local", "kept_poses", "map_pose", "new_node_pose"}
+    with Database(tmp_path / "map.db") as db:
+        memory = Memory(Params(), db, binary_descriptors=True)
+        mapper = LocalMapper(Params(), memory)
+        assert not [name for name in members if not hasattr(mapper, name)]
+        memory.close()
