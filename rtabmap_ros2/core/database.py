@@ -114,6 +114,7 @@ class Database:
         try:
             if new:
                 create_schema(self._conn, self.path)
+                logger.info("created database %s (schema version %d)", self.path, SCHEMA_VERSION)
             else:
                 check_schema(self._conn, self.path)
             if not read_only:

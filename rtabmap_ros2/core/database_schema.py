@@ -32,7 +32,6 @@ when its header (:func:`check_header`), application id, schema version and table
 
 from __future__ import annotations
 
-import logging
 import sqlite3
 import struct
 import time
@@ -43,8 +42,6 @@ from typing import Any, Optional
 import numpy as np
 
 from rtabmap_ros2.errors import DatabaseError
-
-logger = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
 APPLICATION_ID = 0x52544232  # "RTB2" in PRAGMA application_id: marks the file as ours
@@ -210,7 +207,6 @@ def create_schema(conn: sqlite3.Connection, path: Path) -> None:
     except BaseException:
         conn.execute("ROLLBACK")
         raise
-    logger.info("created database %s (schema version %d)", path, SCHEMA_VERSION)
 
 
 def check_schema(conn: sqlite3.Connection, path: Path) -> None:
