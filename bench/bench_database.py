@@ -20,7 +20,7 @@ Measured (medians over the frames, warm page cache, one process):
 * load_nodes / load_links of the whole map (global map export), median of 5 calls;
 * file size per node after close (checkpointed, rollback-journal mode);
 * busy frame: one frame batch through the BackgroundWriter while the main thread runs Python
-  (every statement needs the GIL back from it: database._apply_statements);
+  (every statement needs the GIL back from it: database_batch._apply_statements);
 * transfer: every stored location leaving WM at once (a WM cap drop: in_wm and weight of each)
   through the BackgroundWriter while the main thread runs Python, until the writer is done.
   Baseline: the same UPDATEs one row at a time (executemany) on a writer thread of their own.

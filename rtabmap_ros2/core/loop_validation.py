@@ -17,14 +17,16 @@ against (the 2014 paper's §IV asks for this kind of safety for multi-session):
 - :func:`fits_inter_session_majority` tells whether an initial guess contradicts most of the
   loop closures between some pair of sessions.
 
-The local map's state (poses, kept poses, world frame) is read from a ``LocalMapper``.
+The local map's state (poses, kept poses, world frame) is read through :class:`LocalMapView`
+(``local_map.LocalMapper`` is one), so this module does not import local_map, which calls the
+judgement of links here.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import TYPE_CHECKING, Mapping, Optional
+from typing import TYPE_CHECKING, Mapping, Optional, Protocol
 
 import numpy as np
 
@@ -39,7 +41,7 @@ from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.statistics import Statistics
 
 if TYPE_CHECKING:
-    from rtabmap_ros2.core.local_map import LocalMapper
+    from rtabmap_ros2.core.node_tables import PoseTable
 
 log = logging.getLogger(__name__)
 
@@ -53,10 +55,25 @@ MERGE_CHECK_BEAMS = 180
 MERGE_CHECK_CELL = 0.2
 
 
+class LocalMapView(Protocol):
+    """What :class:`LoopValidator` reads of the local map (``local_map.LocalMapper`` is one):
+    planar or not (None until known), ``T_world_local`` (4x4, local map frame -> world frame of
+    the kept poses), the kept poses, :meth:`map_pose` (a node's kept pose in the world frame) and
+    :meth:`new_node_pose` (the new node's pose in the local map, chained by odometry); 4x4 or None."""
+
+    planar: Optional[bool]
+    T_world_local: np.ndarray
+    kept_poses: PoseTable
+
+    def map_pose(self, node: int) -> Optional[np.ndarray]: ...
+
+    def new_node_pose(self, node: int) -> Optional[np.ndarray]: ...
+
+
 class LoopValidator:
     """Whether a verified loop closure is added now, held for a merge, or rejected (see module)."""
 
-    def __init__(self, params: Params, memory: Memory, bayes: BayesFilter, local: "LocalMapper") -> None:
+    def __init__(self, params: Params, memory: Memory, bayes: BayesFilter, local: LocalMapView) -> None:
         self.params = params
         self.memory = memory
         self.bayes = bayes

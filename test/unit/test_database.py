@@ -1,4 +1,5 @@
-"""Behaviour of the SQLite long-term memory (core/database.py)."""
+"""Behaviour of the SQLite long-term memory (core/database.py and its parts database_schema.py,
+database_batch.py, database_blobs.py)."""
 
 from __future__ import annotations
 
