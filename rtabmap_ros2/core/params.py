@@ -56,6 +56,15 @@ class FeatureParams:
     response_threshold: float = _p(
         0.0, "T_response: minimum detector response of a feature (detector-specific scale)"
     )
+    describable_corners_only: bool = _p(
+        True, "gftt_orb: look for corners only where ORB can describe them (not within ORB/EdgeThreshold, 19 px, "
+        "of the border), so that T_maxFeatures counts described features. Not in RTAB-Map, whose GFTT keeps the "
+        "strongest corners of the whole image and ORB then drops those in the band: a third of a 240x192 image's "
+        "area, 277 of 400 words on Lip6Outdoor (bench/bench_lcd.py)")
+    roll_normalization: bool = _p(
+        True, "Not in RTAB-Map: bring an image's edges upright before detection when the camera rolled "
+        "5-30 degrees (a hand-held camera; core/features.py estimate_roll), so that upright descriptors still "
+        "match. Lip6Outdoor's third walk is held rolled 15-25 degrees (bench/bench_lcd.py)")
     roi_ratios: tuple[float, float, float, float] = _p(
         (0.0, 0.0, 0.0, 0.0),
         "Region of interest as ratios of the image cut off at left, right, top, bottom "
@@ -83,7 +92,7 @@ class VocabularyParams:
         "Kp/NewWordsComparedTogether): a feature repeated in one image gives one word (config/rtabmap.yaml: false "
         "for SLAM, with bayes.likelihood eq1, measured with bench/bench_slam.py)")
     index: str = _p(
-        "auto",
+        "kdtree",
         "Nearest-neighbour index: flat (exact brute force), ivf (inverted file, incremental add/"
         "remove), auto (flat until ivf_min_words words, then ivf), kdtree (RTAB-Map's Kp/NNStrategy 1: FLANN "
         "randomized kd-trees over binary descriptors' bits, 32 checks, approximate; config/rtabmap_reference.yaml)",
@@ -122,7 +131,7 @@ class MemoryParams:
 
     stm_size: int = _p(30, "T_STM: number of locations in Short-Term Memory", "locations")
     rehearsal_similarity: float = _p(
-        0.70, "T_similarity: merge the new location into the previous one if Eq. 1 is above this. RTAB-Map's "
+        0.6, "T_similarity: merge the new location into the previous one if Eq. 1 is above this. RTAB-Map's "
         "0.6 is for its approximate word search; our exact search makes consecutive images share more words "
         "(median Eq. 1 0.59 against RTAB-Map's 0.47 on make_sequence seed 31): 0.7 merges as often as RTAB-Map "
         "at 0.6 (12 % of images against its 11.5 %) and, on make_sequence seeds 31 / 21 / 44, lifted precision "
@@ -218,7 +227,7 @@ class BayesParams:
         "the value of true revisits under T_loop on real images (bench/bench_lcd.py --ablation)", "probability")
     loop_closure_prior: float = _p(0.9, "Sum of p(S_t>=0 | S_t-1=j) over the neighbourhood of j", "probability")
     loop_closure_hop: bool = _p(
-        True, "Whether a loop closure link counts as a hop of the transition model's neighbourhood (true: as a "
+        False, "Whether a loop closure link counts as a hop of the transition model's neighbourhood (true: as a "
         "neighbour link does). false is RTAB-Map's (its BayesFilter's neighbourhoods, Memory::getNeighborsId with "
         "incrementMarginOnLoop false): a location and the ones it closed a loop with are one place, so the belief "
         "carried to a revisited place is shared by every visit's chain and compounds less; "
@@ -233,11 +242,11 @@ class BayesParams:
         "(the paper's Eq. 1 similarity; config/rtabmap.yaml's for SLAM, where it kept the simulated building's ATE "
         "at 0.015-0.017 m against 0.016-0.046 m with tf_idf, bench/bench_slam.py, issue 32)")
     likelihood_trim: float = _p(
-        0.5, "Not in RTAB-Map (0 = its Eq. 3-4): the mean and standard deviation of Eq. 3-4 leave out this "
+        0.0, "Not in RTAB-Map (0 = its Eq. 3-4): the mean and standard deviation of Eq. 3-4 leave out this "
         "fraction of the highest non-zero scores, the candidates themselves, so that they measure the chance "
         "level (core/bayes.py likelihood)", "ratio")
     refine_hops: int = _p(
-        8, "Not in RTAB-Map (0 = off): the highest hypothesis is the location at most this many neighbour links "
+        0, "Not in RTAB-Map (0 = off): the highest hypothesis is the location at most this many neighbour links "
         "from the posterior's peak, along its trajectory, where this frame's likelihood (over bayes.refine_window) "
         "is highest: the peak lags behind a revisit faster than the first pass. 8: the transition model's reach "
         "(bayes.sigma 1.6); through loop closure links too it put one of RTAB-Map's 84 real images on a wrong "
@@ -253,14 +262,14 @@ class BayesParams:
         "overlap: with 1, sessions 4-5 of bench_slam.py's seed 5 never merged (the window chose nodes sharing "
         "too few words for RANSAC)", "links")
     align_radius: float = _p(
-        0.1, "Not in RTAB-Map (0 = off): the highest hypothesis then moves, within bayes.refine_hops neighbour "
+        0.0, "Not in RTAB-Map (0 = off): the highest hypothesis then moves, within bayes.refine_hops neighbour "
         "links along its trajectory, to the location whose image shows this frame's view most in place: the words "
         "found once in both that agree on one shift between the two images, within this fraction of the image's "
         "width, weighted by the part of the frame the two views share at that shift (core/signature.py "
         "aligned_words; moved only to a view scoring 7 or more). Words alone cannot tell two overlapping "
         "views of a place apart, their positions can", "ratio of image width")
     min_evidence_ratio: float = _p(
-        0.5, "Not in RTAB-Map (0 = off): a hypothesis reaching T_loop is accepted only when this frame's "
+        0.0, "Not in RTAB-Map (0 = off): a hypothesis reaching T_loop is accepted only when this frame's "
         "likelihood of it, or of a graph neighbour, is at least this ratio of the new location's: the "
         "current image must itself favour the place, not only the belief carried from earlier frames (a "
         "revisit that ended, a weak match repeated while the camera stands still). Nor is it accepted when the "
@@ -268,7 +277,7 @@ class BayesParams:
         "another street right after a revisit, make_sequence's new location likelihood is often 2 or below and "
         "the ratio alone passed the old place (bench/bench_lcd.py)", "ratio")
     discount_repeated_evidence: bool = _p(
-        True, "Not in RTAB-Map (false = off): a frame's likelihood counts in the filter as 1 - s of an "
+        False, "Not in RTAB-Map (false = off): a frame's likelihood counts in the filter as 1 - s of an "
         "observation, s its Eq. 1 similarity with the previous frame (core/bayes.py discounted), so that a "
         "camera standing still does not compound one weak match frame after frame. On sim/sequence.py "
         "seeds 7 / 11 / 13 precision 0.886 / 0.972 / 0.889 -> 0.980 / 0.991 / 0.987; on make_sequence "

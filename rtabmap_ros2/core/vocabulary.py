@@ -565,6 +565,8 @@ class Vocabulary:
         build, self._build = self._build, None
         if build is not None and build.thread is not None:
             build.thread.join()
+        if self._kdtree is not None:
+            self._kdtree.close()
 
     # ------------------------------------------------------- inverted index
     def add_references(self, location_id: int, word_ids: np.ndarray) -> None:
@@ -833,7 +835,9 @@ class Vocabulary:
         """2-NN distances (N,2) and word ids (N,2) (-1 where not found)."""
         if self.params.index == "kdtree":
             if self._kdtree is None:
-                self._kdtree = RandomizedKdTrees(self._dim, seed=self.params.kdtree_seed)
+                self._kdtree = RandomizedKdTrees(self._dim, seed=self.params.kdtree_seed,
+                                                 background_rebuild=self.background_training,
+                                                 swap_searches=self.params.ivf_swap_frames)
             if self._kdtree_pending:
                 ids = sorted(self._kdtree_pending)
                 self._kdtree.add(np.stack([self._kdtree_pending[i] for i in ids]), np.asarray(ids, np.int64))

@@ -142,3 +142,33 @@ def test_rtabmap_nn_strategy_names_the_index():
     assert Params().with_value("Kp/NNStrategy", 3).vocabulary.index == "flat"
     with pytest.raises(ParameterError, match="Kp/NNStrategy 2"):
         Params().with_value("Kp/NNStrategy", 2)
+
+
+def test_background_rebuild_answers_as_a_rebuild_at_its_snapshot_then_the_same_changes(rng):
+    """The rebuild after the index doubled runs in a thread; the swap_searches-th search after it
+    started swaps it in with the words added and removed meanwhile replayed. Until then the current
+    trees answer; from then on the answers are those of a rebuild made right away, whatever the
+    thread's timing (the swap counts searches, not time)."""
+    words = random_binary(rng, 5000)
+    queries = flip_bits(rng, words[::11], 12)
+    later = random_binary(rng, 300)
+
+    def run(background: bool) -> list:
+        trees = RandomizedKdTrees(32, seed=3, background_rebuild=background, swap_searches=2)
+        trees.add(words[:1000], np.arange(1000))
+        trees.add(words[1000:2500], np.arange(1000, 2500))  # crosses 2x: a rebuild
+        assert trees.rebuilding == background
+        answers = [trees.search(queries)]
+        trees.add(later, np.arange(10_000, 10_300))  # during the rebuild: replayed at the swap
+        trees.remove(np.arange(0, 500, 5))
+        answers.append(trees.search(queries))  # the second search after the start: swapped in
+        assert not trees.rebuilding
+        answers.append(trees.search(queries))
+        return answers
+
+    synchronous, background = run(False), run(True)
+    # The last answers are the same; before the swap, the background run answered from the old trees.
+    for k in (1, 2):
+        np.testing.assert_array_equal(background[k][1], synchronous[k][1])
+        np.testing.assert_array_equal(background[k][0], synchronous[k][0])
+    assert not np.isin(background[2][1], np.arange(0, 500, 5)).any()
