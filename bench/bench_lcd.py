@@ -86,27 +86,29 @@ CONFIGS = {
 UNBOUNDED = "conformance, no T_time"
 # label -> extra options of the reference for that configuration (default: none, the reference's defaults)
 REFERENCE_OPTIONS = {UNBOUNDED: ("--Rtabmap/TimeThr", "0")}
+ISSUE_32_DEFAULTS = ("--set", "vocabulary.index=auto", "--set", "memory.rehearsal_similarity=0.7",
+                     "--set", "bayes.loop_closure_hop=true", "--set", "bayes.likelihood_trim=0.5",
+                     "--set", "bayes.refine_hops=8", "--set", "bayes.refine_window=1", "--set", "bayes.align_radius=0.1",
+                     "--set", "bayes.min_evidence_ratio=0.5", "--set", "bayes.discount_repeated_evidence=true",
+                     "--set", "features.roll_normalization=false", "--set", "features.describable_corners_only=false")
+REFINEMENT = ("--set", "bayes.refine_hops=8", "--set", "bayes.refine_window=1")
 ABLATION = {
     **CONFIGS,
-    "no likelihood trim": ("--set", "bayes.likelihood_trim=0"),
-    "no evidence check": ("--set", "bayes.min_evidence_ratio=0"),
-    "no hypothesis refinement": ("--set", "bayes.refine_hops=0"),
-    "refinement without the window": ("--set", "bayes.refine_window=0"),
-    "refinement 3 hops": ("--set", "bayes.refine_hops=3"),
-    "refinement 5 hops": ("--set", "bayes.refine_hops=5"),
-    "refinement 16 hops": ("--set", "bayes.refine_hops=16"),
-    "no view alignment": ("--set", "bayes.align_radius=0"),
-    "no repeated evidence discount": ("--set", "bayes.discount_repeated_evidence=false"),
-    "no loop closure hop": ("--set", "bayes.loop_closure_hop=false"),
+    # What the defaults add to RTAB-Map's detection, each taken out alone.
+    "no roll normalisation": ("--set", "features.roll_normalization=false"),
+    "no describable corners only": ("--set", "features.describable_corners_only=false"),
+    # Issue 32's additions, each put back alone on the defaults, then all of them (issue 32's defaults).
+    "+ likelihood trim 0.5": ("--set", "bayes.likelihood_trim=0.5"),
+    "+ evidence check 0.5": ("--set", "bayes.min_evidence_ratio=0.5"),
+    "+ hypothesis refinement": REFINEMENT,
+    "+ refinement and view alignment": REFINEMENT + ("--set", "bayes.align_radius=0.1"),
+    "+ repeated evidence discount": ("--set", "bayes.discount_repeated_evidence=true"),
+    "+ loop closure hop": ("--set", "bayes.loop_closure_hop=true"),
+    "rehearsal similarity 0.7": ("--set", "memory.rehearsal_similarity=0.7"),
+    "exact word search": ("--set", "vocabulary.index=auto"),
+    "issue 32 defaults": ISSUE_32_DEFAULTS,
     UNBOUNDED: CONFORMANCE + ("--set", "memory.time_threshold_ms=0"),
-    "evidence ratio 1": ("--set", "bayes.min_evidence_ratio=1"),
-    "approximate search": APPROXIMATE,
-    "approximate search, evidence 1": APPROXIMATE + ("--set", "bayes.min_evidence_ratio=1"),
     "+ epipolar, coverage 0.1": ("--set", "VhEp/Enabled=true", "--set", "bayes.epipolar_min_coverage=0.1"),
-    "loop threshold 0.2": ("--set", "Rtabmap/LoopThr=0.2"),
-    "loop threshold 0.3": ("--set", "Rtabmap/LoopThr=0.3"),
-    "virtual place prior 0.95": ("--set", "Bayes/VirtualPlacePriorThr=0.95"),
-    "rehearsal similarity 0.7": ("--set", "Mem/RehearsalSimilarity=0.7"),
 }
 # The configurations searching words with the kd-tree (RTAB-Map's approximate search): --ours-runs seeds them.
 SEEDED = ("conformance", UNBOUNDED)
