@@ -518,12 +518,29 @@ def distributions(ours_dir: Path, ref_dir: Path, gt: Path) -> dict:
              [_f(s, "words_extracted_from_the_last_image") for s in stats[:n]]),
             ("new_words", [_f(o, "words_added") for o in ours[:n]], [_f(s, "dictionary_new_words") for s in stats[:n]]),
             *((key, [_f(o, key) for o in ours[:n]], [_f(s, key) for s in stats[:n]])
-              for key in ("likelihood_nonzero", "likelihood_mean", "likelihood_max")),
+              for key in ("likelihood_nonzero", "likelihood_mean", "likelihood_max", "likelihood_std")),
+            # Eq. 3 of the highest score and Eq. 4 (the new place), from the image's raw scores: where
+            # the search leaves few chance matches, the revisited place's own neighbours make mu and
+            # sigma, and its score no longer stands out of them (issue 48).
+            *((name, [fn(o) for o in ours[:n]], [fn(s) for s in stats[:n]])
+              for name, fn in (("eq3_highest", _eq3_highest), ("eq4_new_place", _eq4_new_place))),
             ("hypothesis_value", [_f(o, "highest_hypothesis_value") for o in ours[:n]],
              [_f(r, "highest_hypothesis_value") for r in ref[:n]])):
         out[name] = {"ours_loop": med(mine, loop[:n]), "ref_loop": med(theirs, loop[:n]),
                      "ours_other": med(mine, ~loop[:n]), "ref_other": med(theirs, ~loop[:n])}
     return out
+
+
+def _eq3_highest(row: dict) -> float:
+    """Eq. 3's likelihood of the highest raw score of an image's row (1 when it does not stand out)."""
+    mu, sigma, top = _f(row, "likelihood_mean"), _f(row, "likelihood_std"), _f(row, "likelihood_max")
+    return (top - sigma) / mu if mu > 0 and top > mu + sigma else 1.0
+
+
+def _eq4_new_place(row: dict) -> float:
+    """Eq. 4's likelihood of a new place (RTAB-Map's 2 when the scores have no spread)."""
+    mu, sigma = _f(row, "likelihood_mean"), _f(row, "likelihood_std")
+    return mu / sigma + 1.0 if sigma > 1e-4 and mu > 0 else 2.0
 
 
 def table(results: list[dict]) -> list[str]:
