@@ -132,12 +132,9 @@ class MemoryParams:
     stm_size: int = _p(30, "T_STM: number of locations in Short-Term Memory", "locations")
     rehearsal_similarity: float = _p(
         0.6, "T_similarity: merge the new location into the previous one if Eq. 1 is above this. RTAB-Map's "
-        "0.6 is for its approximate word search; our exact search makes consecutive images share more words "
-        "(median Eq. 1 0.59 against RTAB-Map's 0.47 on make_sequence seed 31): 0.7 merges as often as RTAB-Map "
-        "at 0.6 (12 % of images against its 11.5 %) and, on make_sequence seeds 31 / 21 / 44, lifted precision "
-        "from 0.952 / 0.965 / 0.957 to 0.973 / 0.970 / 0.967 (recall 0.939 / 0.959 / 0.918 -> 0.946 / 0.955 / "
-        "0.878; RTAB-Map's own images: no merge either way; bench/bench_lcd.py --ablation). The paper's 0.20 "
-        "merged a moving camera's overlapping views", "ratio"
+        "Mem/RehearsalSimilarity 0.6 (the paper's 0.20 merged a moving camera's overlapping views). 0.7, chosen "
+        "with the exact word search, made no set better with the kd-trees: bench/bench_lcd.py's ablation row "
+        "'rehearsal similarity 0.7' (issue 48)", "ratio"
     )
     rehearsal_max_distance: float = _p(
         0.05, "SLAM mode: the camera moved when its neighbour link is longer than this along an axis; "
@@ -226,65 +223,11 @@ class BayesParams:
         "paper and RTAB-Map: 0.9). 0.95 (the default before issue 32, chosen on sim/sequence.py) kept "
         "the value of true revisits under T_loop on real images (bench/bench_lcd.py --ablation)", "probability")
     loop_closure_prior: float = _p(0.9, "Sum of p(S_t>=0 | S_t-1=j) over the neighbourhood of j", "probability")
-    loop_closure_hop: bool = _p(
-        False, "Whether a loop closure link counts as a hop of the transition model's neighbourhood (true: as a "
-        "neighbour link does). false is RTAB-Map's (its BayesFilter's neighbourhoods, Memory::getNeighborsId with "
-        "incrementMarginOnLoop false): a location and the ones it closed a loop with are one place, so the belief "
-        "carried to a revisited place is shared by every visit's chain and compounds less; "
-        "config/rtabmap_reference.yaml's, where it brings make_sequence seed 44's recall down to the reference's "
-        "(bench/bench_transition.py, docs/benchmarks.md). With the defaults false costs recall at 100 % precision on five of seven sets "
-        "(make_sequence 0.382 / 0.256 / 0.156 -> 0.337 / 0.251 / 0.144, the simulator's seed 11 0.925 -> 0.898) "
-        "and recall on make_sequence (0.804 / 0.755 / 0.645 -> 0.791 / 0.751 / 0.608) "
-        "(bench/bench_lcd.py --configs defaults \"no loop closure hop\")")
     likelihood: str = _p(
         "tf_idf", "Raw score of a WM location before Eq. 3-4: tf_idf (RTAB-Map's Kp/TfIdfLikelihoodUsed: "
         "sum over the frame's words of n_wj log10(N / n_w) / n_j, over the inverted index) or eq1 "
         "(the paper's Eq. 1 similarity; config/rtabmap.yaml's for SLAM, where it kept the simulated building's ATE "
         "at 0.015-0.017 m against 0.016-0.046 m with tf_idf, bench/bench_slam.py, issue 32)")
-    likelihood_trim: float = _p(
-        0.0, "Not in RTAB-Map (0 = its Eq. 3-4): the mean and standard deviation of Eq. 3-4 leave out this "
-        "fraction of the highest non-zero scores, the candidates themselves, so that they measure the chance "
-        "level (core/bayes.py likelihood)", "ratio")
-    refine_hops: int = _p(
-        0, "Not in RTAB-Map (0 = off): the highest hypothesis is the location at most this many neighbour links "
-        "from the posterior's peak, along its trajectory, where this frame's likelihood (over bayes.refine_window) "
-        "is highest: the peak lags behind a revisit faster than the first pass. 8: the transition model's reach "
-        "(bayes.sigma 1.6); through loop closure links too it put one of RTAB-Map's 84 real images on a wrong "
-        "place (bench/bench_lcd.py)", "hops")
-    refine_window: int = _p(
-        1, "Not in RTAB-Map: the hypothesis refinement sums a candidate's likelihood with its trajectory "
-        "neighbours' up to this many links on either side (0: its own alone). In an image sequence consecutive "
-        "images overlap and one location's likelihood is noisy at that scale: against 0, recall at 100 % "
-        "precision 0.160 / 0.031 -> 0.356 / 0.254 on make_sequence seeds 31 / 21 (precision up too) and "
-        "0.823 -> 0.858 on sim/sequence.py seed 13, but 0.924 -> 0.382 on its seed 11 (one image put next to "
-        "the right one) and precision -0.001 to -0.002 on its three seeds (bench/bench_lcd.py). "
-        "config/rtabmap.yaml: 0. SLAM nodes are a second apart and a turning camera's neighbours do not "
-        "overlap: with 1, sessions 4-5 of bench_slam.py's seed 5 never merged (the window chose nodes sharing "
-        "too few words for RANSAC)", "links")
-    align_radius: float = _p(
-        0.0, "Not in RTAB-Map (0 = off): the highest hypothesis then moves, within bayes.refine_hops neighbour "
-        "links along its trajectory, to the location whose image shows this frame's view most in place: the words "
-        "found once in both that agree on one shift between the two images, within this fraction of the image's "
-        "width, weighted by the part of the frame the two views share at that shift (core/signature.py "
-        "aligned_words; moved only to a view scoring 7 or more). Words alone cannot tell two overlapping "
-        "views of a place apart, their positions can", "ratio of image width")
-    min_evidence_ratio: float = _p(
-        0.0, "Not in RTAB-Map (0 = off): a hypothesis reaching T_loop is accepted only when this frame's "
-        "likelihood of it, or of a graph neighbour, is at least this ratio of the new location's: the "
-        "current image must itself favour the place, not only the belief carried from earlier frames (a "
-        "revisit that ended, a weak match repeated while the camera stands still). Nor is it accepted when the "
-        "image's likelihood stands out (Eq. 3) on other locations but not on it or a neighbour: at a jump to "
-        "another street right after a revisit, make_sequence's new location likelihood is often 2 or below and "
-        "the ratio alone passed the old place (bench/bench_lcd.py)", "ratio")
-    discount_repeated_evidence: bool = _p(
-        False, "Not in RTAB-Map (false = off): a frame's likelihood counts in the filter as 1 - s of an "
-        "observation, s its Eq. 1 similarity with the previous frame (core/bayes.py discounted), so that a "
-        "camera standing still does not compound one weak match frame after frame. On sim/sequence.py "
-        "seeds 7 / 11 / 13 precision 0.886 / 0.972 / 0.889 -> 0.980 / 0.991 / 0.987; on make_sequence "
-        "seeds 31 / 21 / 44 precision 0.979 / 0.974 / 0.962 -> 0.997 / 0.982 / 0.965, recall at "
-        "100 % precision 0.558 / 0.418 / 0.020 -> 0.356 / 0.254 / 0.009 and recall "
-        "0.952 / 0.958 / 0.872 -> 0.803 / 0.751 / 0.634 (a revisit's value climbs slower); "
-        "RTAB-Map's 84 images unchanged, SLAM's ATE unchanged (bench/bench_lcd.py, bench/bench_slam.py)")
     loop_ratio: float = _p(
         0.0, "RTAB-Map's Rtabmap/LoopRatio: reject a hypothesis below this ratio of the previous "
         "frame's hypothesis value, or when the previous value was 0 (0 = off, RTAB-Map's default, as here: "
@@ -322,11 +265,6 @@ class BayesParams:
                "in (0, 1)")
         _check(self.likelihood in ("tf_idf", "eq1"), "bayes.likelihood", self.likelihood, "tf_idf or eq1")
         _check(0.0 <= self.loop_ratio <= 1.0, "bayes.loop_ratio", self.loop_ratio, "in [0, 1]")
-        _check(0.0 <= self.likelihood_trim < 1.0, "bayes.likelihood_trim", self.likelihood_trim, "in [0, 1)")
-        _check(self.min_evidence_ratio >= 0.0, "bayes.min_evidence_ratio", self.min_evidence_ratio, ">= 0")
-        _check(self.refine_hops >= 0, "bayes.refine_hops", self.refine_hops, ">= 0")
-        _check(self.refine_window >= 0, "bayes.refine_window", self.refine_window, ">= 0")
-        _check(self.align_radius >= 0.0, "bayes.align_radius", self.align_radius, ">= 0")
         _check(self.epipolar_min_matches >= 8, "bayes.epipolar_min_matches", self.epipolar_min_matches,
                ">= 8 (a fundamental matrix needs 8 pairs)")
         _check(self.epipolar_max_distance > 0.0, "bayes.epipolar_max_distance", self.epipolar_max_distance, "> 0")
