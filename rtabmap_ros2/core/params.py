@@ -93,36 +93,23 @@ class VocabularyParams:
         "for SLAM, with bayes.likelihood eq1, measured with bench/bench_slam.py)")
     index: str = _p(
         "kdtree",
-        "Nearest-neighbour index: flat (exact brute force), ivf (inverted file, incremental add/"
-        "remove), auto (flat until ivf_min_words words, then ivf), kdtree (RTAB-Map's Kp/NNStrategy 1: FLANN "
-        "randomized kd-trees over binary descriptors' bits, 32 checks, approximate; config/rtabmap_reference.yaml)",
+        "Word search: kdtree (RTAB-Map's Kp/NNStrategy 1: FLANN randomized kd-trees over binary descriptors' "
+        "bits, 32 checks, approximate; float descriptors (features.detector sift) use flat) or flat (exact brute "
+        "force, faiss). Issue 48: the exact search needed a likelihood trim that broke real images",
     )
     kdtree_seed: int = _p(
         0, "kdtree: seed of the trees' random choices (FLANN draws its own on every run, so RTAB-Map itself "
         "is not repeatable: bench/bench_lcd.py --ours-runs compares several seeds with several of its runs)")
-    ivf_min_words: int = _p(
-        10000, "auto: switch from the exact flat index to IVF at this size (bench/bench_vocabulary.py: "
-        "IVF is faster than flat from ~10k words, agreeing with exact search on 99.95 % of decisions)",
-        "words")
-    ivf_nprobe: int = _p(32, "IVF: number of inverted lists visited per query")
-    ivf_retrain_growth: float = _p(
-        4.0, "IVF: retrain the coarse quantiser when the vocabulary grew by this factor since the "
-        "last training", "ratio")
-    ivf_swap_frames: int = _p(
-        300, "IVF: a background (re)build is swapped in this many frames (quantize calls) after it "
-        "started, waiting for it then if needed: the same images give the same words whatever the load. "
-        "Builds take up to ~6 s at 200k words on one thread (bench/bench_vocabulary.py); with 50 frames "
-        "the 3,000-image runs waited for them (max pTime 7-12 s on a loaded machine); meanwhile the "
-        "exact flat index serves", "frames")
+    rebuild_swap_frames: int = _p(
+        300,
+        "kdtree: the trees are rebuilt when they have doubled (Kp/FlannRebalancingFactor 2), in a background "
+        "thread; the rebuild is swapped in this many frames (searches) after it started, waiting for it then if "
+        "needed: the same images give the same words whatever the load. (to be measured)", "frames")
 
     def __post_init__(self) -> None:
         _check(0.0 < self.nndr <= 1.0, "vocabulary.nndr", self.nndr, "in (0, 1]")
-        _check(self.index in ("auto", "flat", "ivf", "kdtree"), "vocabulary.index", self.index,
-               "auto, flat, ivf or kdtree")
-        _check(self.ivf_min_words >= 1000, "vocabulary.ivf_min_words", self.ivf_min_words, ">= 1000")
-        _check(self.ivf_nprobe >= 1, "vocabulary.ivf_nprobe", self.ivf_nprobe, ">= 1")
-        _check(self.ivf_swap_frames >= 1, "vocabulary.ivf_swap_frames", self.ivf_swap_frames, ">= 1")
-        _check(self.ivf_retrain_growth > 1.0, "vocabulary.ivf_retrain_growth", self.ivf_retrain_growth, "> 1")
+        _check(self.index in ("flat", "kdtree"), "vocabulary.index", self.index, "kdtree or flat")
+        _check(self.rebuild_swap_frames >= 1, "vocabulary.rebuild_swap_frames", self.rebuild_swap_frames, ">= 1")
 
 
 @dataclass(frozen=True)

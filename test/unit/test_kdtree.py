@@ -132,9 +132,16 @@ def test_vocabulary_kdtree_seed_changes_the_approximate_words_not_the_exact_ones
     assert not np.array_equal(chance, other_chance)
 
 
-def test_kdtree_needs_binary_descriptors():
-    with pytest.raises(ParameterError, match="binary descriptors"):
-        Vocabulary(VocabularyParams(index="kdtree"), binary=False)
+def test_kdtree_with_float_descriptors_uses_the_exact_search(rng, caplog):
+    """SIFT (float descriptors) with the default kdtree: the exact search, said once in the log."""
+    with caplog.at_level("INFO", logger="rtabmap_ros2.core.vocabulary"):
+        vocabulary = Vocabulary(VocabularyParams(index="kdtree"), binary=False)
+    assert not vocabulary.uses_kdtree
+    assert any("exact search" in record.getMessage() for record in caplog.records)
+    words = rng.standard_normal((50, 128)).astype(np.float32)
+    ids, _ = vocabulary.quantize(words)
+    again = vocabulary.match(words + np.float32(1e-3))
+    np.testing.assert_array_equal(again, ids)
 
 
 def test_rtabmap_nn_strategy_names_the_index():
