@@ -60,6 +60,19 @@ _INITIAL_POINTS = 1024
 # Node arrays: int32 indices (points and nodes < 2**31) and float32 split values, 16 bytes a node;
 # a forest holds up to 16 nodes a word (4 trees built over n words, 2 nodes per tree per insertion).
 _NODE = np.int32
+# Background rebuild (issue 50). Its swap comes at least one search per SWAP_WORDS_PER_SEARCH words
+# of the snapshot after it started, so the swap search does not wait for the thread: a build costs
+# ~8.5 us of CPU a word (980k ORB words: 8.4 s, this 2-core machine), a detect frame at least ~40 ms
+# of the main thread's, and the two threads share the CPU; at 1,000 words a search the thread has
+# ~5x the CPU it needs. Before: 300 searches whatever the size, reached by 1M-word rebuilds that
+# took 56 s on a loaded machine (load 19), a wait of seconds in one frame.
+SWAP_WORDS_PER_SEARCH = 1000
+# Once the thread has finished, each search replays at most this many logged words (added or
+# removed) into the new trees (~50 us a word inserted in 4 trees): a frame's worth or two, so the
+# replay catches up well before the swap without one search replaying hundreds of frames at once.
+REPLAY_WORDS_PER_SEARCH = 2000
+# A swap search that still had to wait for the thread longer than this is logged (warning).
+WAIT_WARNING_S = 0.05
 
 logger = logging.getLogger(__name__)
 
@@ -509,14 +522,20 @@ class _Rebuild:
             self.seconds = time.perf_counter() - start
             self.done.set()
 
-    def replay(self) -> None:
-        """Apply the changes logged so far to the rebuilt forest (main thread, once ``done``)."""
+    def replay(self, max_words: int | None = None) -> None:
+        """Apply the changes logged so far, in order, to the rebuilt forest (main thread, once
+        ``done``): all of them, or whole changes until ``max_words`` words were replayed."""
+        replayed = done = 0
         for kind, lanes, ids in self.log:
+            if max_words is not None and replayed >= max_words:
+                break
             if kind == "add":
                 self.forest.add(lanes, ids)
             else:
                 self.forest.remove(ids)
-        self.log.clear()
+            replayed += ids.size
+            done += 1
+        del self.log[:done]
 
 
 class RandomizedKdTrees:
@@ -524,9 +543,10 @@ class RandomizedKdTrees:
 
     ``background_rebuild``: when the index has doubled, its rebuild (seconds at a million words: more
     than T_time) runs in a thread on a snapshot of the live words while the current trees keep serving
-    and taking words; the ``swap_searches``-th search after it started swaps the new trees in (waiting
-    for the thread if needed), the words added and removed since replayed into them (from the first
-    search after the thread finished on, a search's worth at a time). The swap point counts searches
+    and taking words; the ``max(swap_searches, words / SWAP_WORDS_PER_SEARCH)``-th search after it
+    started swaps the new trees in (waiting for the thread if needed), the words added and removed since replayed into them (from the first
+    search after the thread finished on, up to REPLAY_WORDS_PER_SEARCH words a search, the rest at
+    the swap). The swap point counts searches
     (frames), not time, so the same words give the same answers whatever the machine's load; the
     answers are those of a rebuild made at the snapshot followed by the same changes. Without it, the
     rebuild happens in the call that doubles the index, as RTAB-Map's."""
@@ -546,6 +566,7 @@ class RandomizedKdTrees:
         self._rebuild: _Rebuild | None = None
         self.rebuilds = 0  # rebuilds swapped in (the first build excluded)
         self.last_rebuild_seconds = 0.0  # the last one's time in its thread
+        self.last_wait_seconds = 0.0  # what the last swap search waited for its thread
 
     def __len__(self) -> int:
         return len(self._forest.point_of)
@@ -584,7 +605,8 @@ class RandomizedKdTrees:
 
     def _start_rebuild(self, first: bool) -> None:
         """buildIndex over the live words (cleanRemovedPoints): here, or in a thread (not the first build)."""
-        rebuild = _Rebuild(self._forest, self._rng, self._searches + self.swap_searches)
+        delay = max(self.swap_searches, -(-self._forest.n_points // SWAP_WORDS_PER_SEARCH))
+        rebuild = _Rebuild(self._forest, self._rng, self._searches + delay)
         if first or not self.background_rebuild:
             rebuild.run()
             self._swap_in(rebuild)
@@ -614,9 +636,14 @@ class RandomizedKdTrees:
         swap = self._searches >= rebuild.swap_at
         if not swap:
             if rebuild.done.is_set() and rebuild.error is None:
-                rebuild.replay()
+                rebuild.replay(REPLAY_WORDS_PER_SEARCH)
             return
+        start = time.perf_counter()
         rebuild.thread.join()
+        self.last_wait_seconds = time.perf_counter() - start
+        if self.last_wait_seconds > WAIT_WARNING_S:
+            logger.warning("kd-tree word search: the frame waited %.2f s for the trees' rebuild (%.1f s in its "
+                           "thread): the machine is loaded", self.last_wait_seconds, rebuild.seconds)
         self._rebuild = None
         self._swap_in(rebuild)
 

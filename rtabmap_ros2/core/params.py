@@ -103,12 +103,14 @@ class VocabularyParams:
     rebuild_swap_frames: int = _p(
         300,
         "kdtree: the trees are rebuilt when they have doubled (Kp/FlannRebalancingFactor 2), in a background "
-        "thread; the rebuild is swapped in this many frames (searches) after it started, waiting for it then if "
-        "needed: the same images give the same words whatever the load. (to be measured)", "frames")
+        "thread; the rebuild is swapped in this many frames (searches) after it started, and at least one frame "
+        "per 1,000 words it holds (core/kdtree.py SWAP_WORDS_PER_SEARCH: a 1M-word rebuild takes ~8 s of CPU), "
+        "waiting for it then if needed: the same images give the same words whatever the load", "frames")
 
     def __post_init__(self) -> None:
         _check(0.0 < self.nndr <= 1.0, "vocabulary.nndr", self.nndr, "in (0, 1]")
-        _check(self.index in ("flat", "kdtree"), "vocabulary.index", self.index, "kdtree or flat")
+        _check(self.index in ("flat", "kdtree"), "vocabulary.index", self.index,
+               "kdtree or flat (auto and ivf were removed with the IVF word search, issue 50: flat is the exact search)")
         _check(self.rebuild_swap_frames >= 1, "vocabulary.rebuild_swap_frames", self.rebuild_swap_frames, ">= 1")
 
 
@@ -687,8 +689,22 @@ _NN_STRATEGIES = {0: "flat", 1: "kdtree", 3: "flat", 4: "flat"}
 _DETECTOR_STRATEGIES = {2: "orb", 1: "sift", 8: "gftt_orb"}
 
 
+# Parameters that were removed, with what to do instead: a config file written for an older version
+# gets this rather than "unknown parameter".
+_IVF_REMOVED = "the IVF word search was removed (issue 50): vocabulary.index is kdtree (RTAB-Map's) or flat (exact)"
+REMOVED_PARAMETERS: dict[str, str] = {
+    "vocabulary.ivf_min_words": _IVF_REMOVED + "; delete this key",
+    "vocabulary.ivf_nprobe": _IVF_REMOVED + "; delete this key",
+    "vocabulary.ivf_retrain_growth": _IVF_REMOVED + "; delete this key",
+    "vocabulary.ivf_swap_frames": "renamed vocabulary.rebuild_swap_frames (the kd-trees' background rebuild; "
+                                  "the IVF word search was removed, issue 50)",
+}
+
+
 def resolve_name(name: str, value: Any) -> tuple[str, Any]:
     """Map any accepted spelling of a parameter to its dotted name, converting the value's unit."""
+    if name in REMOVED_PARAMETERS:
+        raise ParameterError(f"parameter {name!r} no longer exists: {REMOVED_PARAMETERS[name]}")
     if name in RTABMAP_ALIASES:
         dotted, convert = RTABMAP_ALIASES[name]
         try:

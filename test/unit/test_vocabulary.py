@@ -372,6 +372,7 @@ def gated_rebuild(monkeypatch):
     """
     gate = threading.Event()
     run = kdtree._Rebuild.run
+    monkeypatch.setattr(kdtree, "SWAP_WORDS_PER_SEARCH", 10**9)  # the swap at rebuild_swap_frames
 
     def waiting_run(self):
         if threading.current_thread() is not threading.main_thread():
@@ -455,6 +456,7 @@ def test_close_and_garbage_collection_do_not_wait_for_a_rebuild(rng, gated_rebui
 
 
 def test_background_rebuild_error_is_raised_in_the_main_thread(rng, monkeypatch):
+    monkeypatch.setattr(kdtree, "SWAP_WORDS_PER_SEARCH", 10**9)  # the swap at rebuild_swap_frames
     build = kdtree._Forest.build
 
     def failing_build(self, draws):
