@@ -695,9 +695,13 @@ def warm_up() -> float:
         trees.add(words[24:], np.arange(24, 48))  # doubled: a rebuild
         trees.search(words[:8])
         seconds = time.perf_counter() - start
-        compiled = sum(sum(getattr(f, "stats").cache_misses.values()) for f in _DISPATCHED)
-        cache = getattr(_search, "stats").cache_path
-        if _UNCACHED:
+        stats = [getattr(f, "stats", None) for f in _DISPATCHED]  # None: NUMBA_DISABLE_JIT (Python)
+        compiled = sum(sum(s.cache_misses.values()) for s in stats if s is not None)
+        cache = stats[-1].cache_path if stats[-1] is not None else None
+        if stats[-1] is None:
+            logger.warning("kd-tree word search: numba's JIT is disabled (NUMBA_DISABLE_JIT): it runs as Python, "
+                           "100-500x slower")
+        elif _UNCACHED:
             logger.warning("kd-tree word search: numba compiled it in %.1f s and cannot cache it (no writable cache "
                            "directory beside the package or in the user's cache; set NUMBA_CACHE_DIR): every "
                            "process compiles it again", seconds)
