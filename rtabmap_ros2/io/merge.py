@@ -47,7 +47,7 @@ from rtabmap_ros2.errors import DatabaseError, ParameterError, RegistrationError
 log = logging.getLogger(__name__)
 
 # Parameters that decide what a stored word is: inputs whose stored features are reused must agree
-# on them (the vocabulary's search settings, index and ivf_*, only change how fast words are found).
+# on them (the vocabulary's search settings, index and rebuild_swap_frames, only change how words are found).
 WORD_PARAMETERS = ("features.detector", "features.max_features", "features.response_threshold",
                    "features.roi_ratios", "vocabulary.nndr", "vocabulary.new_words_compared_together")
 # Nodes read from an input per query.
