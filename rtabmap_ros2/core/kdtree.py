@@ -109,12 +109,12 @@ def _bit(words, point, dim):
 
 
 @_jit()
-def _divide_tree(bits, ind, choices, feat, val, child1, child2, n_nodes):
+def _divide_tree(words, n_dims, ind, choices, feat, val, child1, child2, n_nodes):
     """divideTree + meanSplit + planeSplit over ``ind`` (a permutation of the points, split in
-    place); ``bits`` (n_points, n_dims) uint8 0/1, every word's bits unpacked; ``choices`` one random
+    place); ``words`` (n_points, lanes) uint64, the words' ``n_dims`` bits (read in place: unpacked
+    they took 256 bytes a word, 400 MB more during a 1.5M-word rebuild); ``choices`` one random
     draw in [0, RAND_DIM) per inner node, in FLANN's depth-first order. Returns (root, number of
     nodes used)."""
-    n_dims = bits.shape[1]
     count_all = ind.size
     stack_node = np.empty(2 * count_all + 1, np.int64)
     stack_start = np.empty(2 * count_all + 1, np.int64)
@@ -137,9 +137,11 @@ def _divide_tree(bits, ind, choices, feat, val, child1, child2, n_nodes):
         cnt = min(SAMPLE_MEAN + 1, count)
         ones[:] = 0
         for j in range(cnt):
-            row = bits[ind[start + j]]
-            for d in range(n_dims):
-                ones[d] += row[d]
+            point = ind[start + j]
+            for lane in range(words.shape[1]):
+                w = words[point, lane]
+                for b in range(min(_BITS, n_dims - lane * _BITS)):
+                    ones[lane * _BITS + b] += np.int32((w >> np.uint64(b)) & np.uint64(1))
         # selectDivision: the RAND_DIM largest variances (a bubble insertion, as FLANN), one at random.
         # The variance of a 0/1 dimension over cnt words is ones (cnt - ones) / cnt: compared as integers.
         topind = np.empty(RAND_DIM, np.int64)
@@ -163,9 +165,9 @@ def _divide_tree(bits, ind, choices, feat, val, child1, child2, n_nodes):
         # planeSplit: [< cutval | == cutval | > cutval], swapped in place.
         left, right = 0, count - 1
         while True:
-            while left <= right and np.float32(bits[ind[start + left], cut]) < cutval:
+            while left <= right and np.float32(_bit(words, ind[start + left], cut)) < cutval:
                 left += 1
-            while left <= right and np.float32(bits[ind[start + right], cut]) >= cutval:
+            while left <= right and np.float32(_bit(words, ind[start + right], cut)) >= cutval:
                 right -= 1
             if left > right:
                 break
@@ -175,9 +177,9 @@ def _divide_tree(bits, ind, choices, feat, val, child1, child2, n_nodes):
         lim1 = left
         right = count - 1
         while True:
-            while left <= right and np.float32(bits[ind[start + left], cut]) <= cutval:
+            while left <= right and np.float32(_bit(words, ind[start + left], cut)) <= cutval:
                 left += 1
-            while left <= right and np.float32(bits[ind[start + right], cut]) > cutval:
+            while left <= right and np.float32(_bit(words, ind[start + right], cut)) > cutval:
                 right -= 1
             if left > right:
                 break
@@ -416,12 +418,10 @@ class _Forest:
         self.n_nodes = 0
         self.feat = np.zeros(0, _NODE)
         self.reserve_nodes(TREES * (2 * n - 1) + 2 * TREES * (int((REBALANCING - 1.0) * n) + 1) + 16)
-        bits = np.ascontiguousarray(
-            np.unpackbits(self.words[:n].view(np.uint8), axis=1, bitorder="little")[:, : self.n_bits])
         roots = []
         for ind, choices in draws:
-            root, self.n_nodes = _divide_tree(bits, ind.copy(), choices, self.feat, self.val, self.child1,
-                                              self.child2, self.n_nodes)
+            root, self.n_nodes = _divide_tree(self.words, self.n_bits, ind.copy(), choices, self.feat, self.val,
+                                              self.child1, self.child2, self.n_nodes)
             roots.append(root)
         self.roots = np.asarray(roots, np.int64)
         self.size_at_build = n
