@@ -23,9 +23,11 @@ as a user runs it) over ``../shared/tools/make_sequence.py`` images of a seed no
 (``memory.time_threshold_ms=700``). Reported per run: max, p95 and median process time, frames over
 T_time, WM and vocabulary size (last and largest), transfers, peak RSS of the process (wait4), the
 machine's load, and the steps of the slowest frames (from the database's statistics table)
-(-> ``results/detect_long.json``). Target: max process time <= 0.7 s.
+(-> ``long_runs`` in ``results/detect.json``, the T_time sweep's runs kept). Target: max process
+time <= 0.7 s. ``--long-report-only`` summarises the runs' outputs as they are (one still running
+or stopped: the frames done so far), running nothing.
 
-    nice -n 10 python bench/bench_detect.py --long 10000 25000 [--data DIR]
+    nice -n 10 python bench/bench_detect.py --long 10000 25000 [--data DIR] [--long-report-only]
 
 Issue 12 modes (T_time 0.7 s, one sequence per seed of ``--seeds``, default 7 11 13):
 
@@ -475,12 +477,16 @@ def long_runs(args: argparse.Namespace) -> int:
     import resource
 
     RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / "detect_long.json"
+    path = RESULTS / "detect.json"
     runs = []
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))))
     for n in args.long:
         folder = ensure_long_sequence(n, args.data, args.long_seed, args.long_size)
         out_dir = args.data / f"detect_long_{n}_{args.long_seed}"
+        if args.long_report_only:
+            run = {"images": n, "seed": args.long_seed, "partial": True, **long_summary(out_dir, LONG_T_TIME_MS)}
+            print(json.dumps(run, indent=1))
+            continue
         command = [sys.executable, "-m", "rtabmap_ros2.cli.cli", "detect", str(folder / "images"),
                    "--out", str(out_dir), "--set", f"memory.time_threshold_ms={LONG_T_TIME_MS:g}",
                    "--ground-truth", str(folder / "gt.png"), "--no-progress"]
@@ -509,8 +515,11 @@ def long_runs(args: argparse.Namespace) -> int:
         for spike in run["slowest"]:
             print(f"  frame {spike['frame']}: {spike['ptime_ms']:.0f} ms, WM {spike['wm_size']}, "
                   f"transferred {spike['transferred']}, steps {spike['steps_ms']}", flush=True)
-        path.write_text(json.dumps({"cpu_count": os.cpu_count(), "runs": runs}, indent=1))
-    print(f"-> {path}")
+        report = json.loads(path.read_text()) if path.exists() else {}
+        report["long_runs"] = {"cpu_count": os.cpu_count(), "runs": runs}
+        path.write_text(json.dumps(report, indent=1))
+    if runs:
+        print(f"-> {path}")
     return 0
 
 
@@ -542,6 +551,8 @@ def main() -> int:
                         help="issue 50: rtabmap-ros2 detect over N make_sequence images each (e.g. 10000 25000)")
     parser.add_argument("--long-seed", type=int, default=LONG_SEED, help=f"--long: sequence seed (default {LONG_SEED})")
     parser.add_argument("--long-size", default=LONG_SIZE, help=f"--long: WIDTHxHEIGHT (default {LONG_SIZE})")
+    parser.add_argument("--long-report-only", action="store_true",
+                        help="--long: summarise the runs' outputs so far (partial ones too), running nothing")
     parser.add_argument("--single", type=float, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
     parser.add_argument("--cached-features", action="store_true",
