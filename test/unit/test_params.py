@@ -153,3 +153,14 @@ def test_round_trip_through_yaml(tmp_path):
     p.to_yaml(tmp_path / "out.yaml")
     again = Params.from_yaml(tmp_path / "out.yaml")
     assert again == p
+
+
+def test_the_removed_ivf_parameters_say_what_replaced_them():
+    """Issue 50: config files written for the IVF word search get a ParameterError naming the change."""
+    with pytest.raises(ParameterError, match="renamed vocabulary.rebuild_swap_frames"):
+        Params().with_value("vocabulary.ivf_swap_frames", 300)
+    with pytest.raises(ParameterError, match="IVF word search was removed"):
+        Params().with_overrides(["vocabulary.ivf_nprobe=32"])
+    with pytest.raises(ParameterError, match="auto and ivf were removed"):
+        Params().with_value("vocabulary.index", "auto")
+    assert Params().with_value("vocabulary.rebuild_swap_frames", 50).vocabulary.rebuild_swap_frames == 50
