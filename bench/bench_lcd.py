@@ -75,7 +75,6 @@ DEFAULT_FRAMES = 3000
 CONFORMANCE = ("--config", str(REPO / "config" / "rtabmap_reference.yaml"))
 # label -> detect options. The defaults and RTAB-Map's defaults (the conformance setting) first; the
 # ablation then takes each of the defaults' changes out alone, and tries the alternatives measured.
-APPROXIMATE = ("--set", "vocabulary.index=ivf", "--set", "vocabulary.ivf_nprobe=1")
 CONFIGS = {
     "defaults": (),
     "conformance": CONFORMANCE,

@@ -36,10 +36,14 @@ the reference itself is not repeatable).
 
 from __future__ import annotations
 
+import logging
 import threading
+import time
 
 import numba
 import numpy as np
+
+from rtabmap_ros2.core.id_index import IdIndex
 
 # FLANN's KDTreeIndexParams default, RTAB-Map's KNN_CHECKS and Kp/FlannRebalancingFactor default.
 TREES = 4
@@ -53,9 +57,44 @@ NEAREST = 2
 _LEAF = -1
 _BITS = 64  # the words are held as little-endian uint64 lanes: dimension d is lane d // 64, bit d % 64
 _INITIAL_POINTS = 1024
+# Node arrays: int32 indices (points and nodes < 2**31) and float32 split values, 16 bytes a node;
+# a forest holds up to 16 nodes a word (4 trees built over n words, 2 nodes per tree per insertion).
+_NODE = np.int32
+# Background rebuild (issue 50). Its swap comes at least one search per SWAP_WORDS_PER_SEARCH words
+# of the snapshot after it started, so the swap search does not wait for the thread: a build costs
+# ~8.5 us of CPU a word (980k ORB words: 8.4 s, this 2-core machine), a detect frame at least ~40 ms
+# of the main thread's, and the two threads share the CPU; at 1,000 words a search the thread has
+# ~5x the CPU it needs. Before: 300 searches whatever the size, reached by 1M-word rebuilds that
+# took 56 s on a loaded machine (load 19), a wait of seconds in one frame.
+SWAP_WORDS_PER_SEARCH = 1000
+# Once the thread has finished, each search replays at most this many logged words (added or
+# removed) into the new trees (~50 us a word inserted in 4 trees): a frame's worth or two, so the
+# replay catches up well before the swap without one search replaying hundreds of frames at once.
+REPLAY_WORDS_PER_SEARCH = 2000
+# A swap search that still had to wait for the thread longer than this is logged (warning).
+WAIT_WARNING_S = 0.05
+
+logger = logging.getLogger(__name__)
+
+# Functions compiled without numba's on-disk cache (no writable cache directory: see _jit).
+_UNCACHED: list[str] = []
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+def _jit(**options):
+    """``numba.njit(nogil=True)`` with numba's on-disk cache (``cache=True``): compiled once per
+    install and source version, then loaded (``__pycache__`` beside this module if writable, else
+    ``NUMBA_CACHE_DIR``, else the user's cache directory). Where none is writable numba refuses
+    ``cache=True`` at import (RuntimeError): then the function is compiled in every process."""
+    def decorate(fn):
+        try:
+            return numba.njit(cache=True, nogil=True, **options)(fn)
+        except RuntimeError:
+            _UNCACHED.append(fn.__name__)
+            return numba.njit(nogil=True, **options)(fn)
+    return decorate
+
+
+@_jit(inline="always")
 def _popcount(x):
     """Set bits of a uint64 (SWAR)."""
     x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
@@ -64,18 +103,18 @@ def _popcount(x):
     return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@_jit(inline="always")
 def _bit(words, point, dim):
     return (words[point, dim >> 6] >> np.uint64(dim & 63)) & np.uint64(1)
 
 
-@numba.njit(cache=True, nogil=True)
-def _divide_tree(bits, ind, choices, feat, val, child1, child2, n_nodes):
+@_jit()
+def _divide_tree(words, n_dims, ind, choices, feat, val, child1, child2, n_nodes):
     """divideTree + meanSplit + planeSplit over ``ind`` (a permutation of the points, split in
-    place); ``bits`` (n_points, n_dims) uint8 0/1, every word's bits unpacked; ``choices`` one random
+    place); ``words`` (n_points, lanes) uint64, the words' ``n_dims`` bits (read in place: unpacked
+    they took 256 bytes a word, 400 MB more during a 1.5M-word rebuild); ``choices`` one random
     draw in [0, RAND_DIM) per inner node, in FLANN's depth-first order. Returns (root, number of
     nodes used)."""
-    n_dims = bits.shape[1]
     count_all = ind.size
     stack_node = np.empty(2 * count_all + 1, np.int64)
     stack_start = np.empty(2 * count_all + 1, np.int64)
@@ -98,9 +137,11 @@ def _divide_tree(bits, ind, choices, feat, val, child1, child2, n_nodes):
         cnt = min(SAMPLE_MEAN + 1, count)
         ones[:] = 0
         for j in range(cnt):
-            row = bits[ind[start + j]]
-            for d in range(n_dims):
-                ones[d] += row[d]
+            point = ind[start + j]
+            for lane in range(words.shape[1]):
+                w = words[point, lane]
+                for b in range(min(_BITS, n_dims - lane * _BITS)):
+                    ones[lane * _BITS + b] += np.int32((w >> np.uint64(b)) & np.uint64(1))
         # selectDivision: the RAND_DIM largest variances (a bubble insertion, as FLANN), one at random.
         # The variance of a 0/1 dimension over cnt words is ones (cnt - ones) / cnt: compared as integers.
         topind = np.empty(RAND_DIM, np.int64)
@@ -124,9 +165,9 @@ def _divide_tree(bits, ind, choices, feat, val, child1, child2, n_nodes):
         # planeSplit: [< cutval | == cutval | > cutval], swapped in place.
         left, right = 0, count - 1
         while True:
-            while left <= right and np.float32(bits[ind[start + left], cut]) < cutval:
+            while left <= right and np.float32(_bit(words, ind[start + left], cut)) < cutval:
                 left += 1
-            while left <= right and np.float32(bits[ind[start + right], cut]) >= cutval:
+            while left <= right and np.float32(_bit(words, ind[start + right], cut)) >= cutval:
                 right -= 1
             if left > right:
                 break
@@ -136,9 +177,9 @@ def _divide_tree(bits, ind, choices, feat, val, child1, child2, n_nodes):
         lim1 = left
         right = count - 1
         while True:
-            while left <= right and np.float32(bits[ind[start + left], cut]) <= cutval:
+            while left <= right and np.float32(_bit(words, ind[start + left], cut)) <= cutval:
                 left += 1
-            while left <= right and np.float32(bits[ind[start + right], cut]) > cutval:
+            while left <= right and np.float32(_bit(words, ind[start + right], cut)) > cutval:
                 right -= 1
             if left > right:
                 break
@@ -161,8 +202,16 @@ def _divide_tree(bits, ind, choices, feat, val, child1, child2, n_nodes):
     return root, n_nodes
 
 
-@numba.njit(cache=True, nogil=True)
-def _insert(words, roots, point, feat, val, child1, child2, n_nodes, n_dims):
+@_jit()
+def _insert(words, roots, first, last, feat, val, child1, child2, n_nodes):
+    """addPointToTree of points [first, last) in every tree, in order; returns the number of nodes used."""
+    for point in range(first, last):
+        n_nodes = _insert_point(words, roots, point, feat, val, child1, child2, n_nodes)
+    return n_nodes
+
+
+@_jit(inline="always")
+def _insert_point(words, roots, point, feat, val, child1, child2, n_nodes):
     """addPointToTree in every tree; returns the number of nodes used."""
     for t in range(roots.size):
         node = roots[t]
@@ -200,7 +249,7 @@ def _insert(words, roots, point, feat, val, child1, child2, n_nodes, n_dims):
     return n_nodes
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@_jit(inline="always")
 def _heap_push(bounds, nodes, size, bound, node):
     """std::push_heap with FLANN's comparator (a min-heap on the bound)."""
     hole = size
@@ -213,7 +262,7 @@ def _heap_push(bounds, nodes, size, bound, node):
     return size + 1
 
 
-@numba.njit(cache=True, nogil=True)
+@_jit()
 def _heap_pop(bounds, nodes, size):
     """std::pop_heap (libstdc++'s __adjust_heap) with FLANN's comparator; the heap's new size. The
     popped branch is left at index ``size - 1``."""
@@ -244,7 +293,7 @@ def _heap_pop(bounds, nodes, size):
     return last
 
 
-@numba.njit(cache=True, nogil=True)
+@_jit()
 def _search_level(words, removed, query, q, node, mindist, feat, val, child1, child2, checked, stamp,
                   state, found_d, found_p, heap_b, heap_n):
     """searchLevel: one descent from ``node``; state = [checks, found, heap size]."""
@@ -290,7 +339,7 @@ def _search_level(words, removed, query, q, node, mindist, feat, val, child1, ch
         node = best
 
 
-@numba.njit(cache=True, nogil=True)
+@_jit()
 def _search(words, removed, roots, feat, val, child1, child2, queries, checked, stamp0, out_d, out_p):
     """getNeighbors (2-NN, 32 checks) of every query."""
     heap_b = np.empty(max(words.shape[0], 1), np.float32)
@@ -323,11 +372,18 @@ def _as_lanes(descriptors: np.ndarray, lanes: int) -> np.ndarray:
     return padded.view("<u8")
 
 
-def _grown(array: np.ndarray, size: int, fill, keep: int) -> np.ndarray:
-    """``array`` with room for ``size`` rows, its first ``keep`` rows kept, the rest ``fill``."""
-    out = np.full((size,) + array.shape[1:], fill, array.dtype)
+def _grown(array: np.ndarray, size: int, keep: int) -> np.ndarray:
+    """``array`` with room for ``size`` rows, its first ``keep`` rows kept, the rest zero. The room is
+    ``np.zeros`` (calloc): its pages are resident only once written."""
+    out = np.zeros((size,) + array.shape[1:], array.dtype)
     out[:keep] = array[:keep]
     return out
+
+
+def _draws(rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The random choices of a build over ``n`` words: a permutation and one draw per inner node per tree."""
+    return [(rng.permutation(n).astype(np.int64), rng.integers(0, RAND_DIM, size=max(n - 1, 1)).astype(np.int64))
+            for _ in range(TREES)]
 
 
 class _Forest:
@@ -337,69 +393,68 @@ class _Forest:
         self.lanes, self.n_bits = lanes, n_bits
         n = ids.size
         size = max(_INITIAL_POINTS, 2 * n)
-        self.words = _grown(words, size, 0, n)
-        self.ids = _grown(ids, size, 0, n)
+        self.words = _grown(words, size, n)
+        self.ids = _grown(ids, size, n)
         self.removed = np.zeros(size, np.bool_)
-        self.checked = np.full(size, -1, np.int64)
+        self.checked = np.zeros(size, np.int64)  # search stamps (RandomizedKdTrees._stamp, from 1)
         self.n_points = n
-        self.point_of: dict[int, int] = dict(zip(ids.tolist(), range(n)))  # word id -> point (live only)
+        self.point_of = IdIndex()  # word id -> point (live words only)
+        self.point_of.insert(ids, np.arange(n, dtype=np.int64))
         self.n_removed = 0
         self.size_at_build = 0
         # Nodes of all trees: a leaf has child1 == _LEAF and its point in feat.
-        self.feat = np.zeros(0, np.int64)
+        self.feat = np.zeros(0, _NODE)
         self.val = np.zeros(0, np.float32)
-        self.child1 = np.zeros(0, np.int64)
-        self.child2 = np.zeros(0, np.int64)
+        self.child1 = np.zeros(0, _NODE)
+        self.child2 = np.zeros(0, _NODE)
         self.n_nodes = 0
         self.roots = np.zeros(0, np.int64)
 
     def build(self, draws: list[tuple[np.ndarray, np.ndarray]]) -> None:
-        """divideTree for each tree over the live words, with one (permutation, choices) draw per tree."""
+        """divideTree for each tree over all points, with one (permutation, choices) draw per tree.
+        Room is reserved for the insertions until the next rebuild (2 nodes per tree per word,
+        REBALANCING x the words): no node array grows in a frame."""
         n = self.n_points
         self.n_nodes = 0
-        self.feat = np.zeros(0, np.int64)
-        self.reserve_nodes(TREES * (2 * n - 1) + 2 * TREES * n + 16)
-        bits = np.unpackbits(self.words[:n].view(np.uint8), axis=1, bitorder="little")[:, : self.n_bits]
+        self.feat = np.zeros(0, _NODE)
+        self.reserve_nodes(TREES * (2 * n - 1) + 2 * TREES * (int((REBALANCING - 1.0) * n) + 1) + 16)
         roots = []
         for ind, choices in draws:
-            root, self.n_nodes = _divide_tree(bits, ind.copy(), choices, self.feat, self.val, self.child1,
-                                              self.child2, self.n_nodes)
+            root, self.n_nodes = _divide_tree(self.words, self.n_bits, ind.copy(), choices, self.feat, self.val,
+                                              self.child1, self.child2, self.n_nodes)
             roots.append(root)
         self.roots = np.asarray(roots, np.int64)
         self.size_at_build = n
 
     def add(self, lanes: np.ndarray, ids: np.ndarray) -> None:
-        """Append words and insert them into every tree (addPointToTree)."""
+        """Append words (distinct ids) and insert them into every tree (addPointToTree)."""
         n = ids.size
         first = self.n_points
         self.reserve_points(first + n)
         self.words[first:first + n] = lanes
         self.ids[first:first + n] = ids
         self.removed[first:first + n] = False
-        for k, word_id in enumerate(ids.tolist()):
-            old = self.point_of.get(word_id)
-            if old is not None:  # re-added under the same id: the old point goes
-                self.removed[old] = True
-                self.n_removed += 1
-            self.point_of[word_id] = first + k
+        points = np.arange(first, first + n, dtype=np.int64)
+        old = self.point_of.rows(ids)
+        again = old >= 0
+        if again.any():  # re-added under the same id: the old point goes
+            self.removed[old[again]] = True
+            self.n_removed += int(again.sum())
+            self.point_of.set_rows(ids[again], points[again])
+        self.point_of.insert(ids[~again], points[~again])
         self.n_points = first + n
         if self.roots.size:
             self.reserve_nodes(self.n_nodes + 2 * TREES * n)
-            for point in range(first, first + n):
-                self.n_nodes = _insert(self.words, self.roots, point, self.feat, self.val, self.child1, self.child2,
-                                       self.n_nodes, self.n_bits)
+            self.n_nodes = _insert(self.words, self.roots, first, first + n, self.feat, self.val, self.child1,
+                                   self.child2, self.n_nodes)
 
     def remove(self, ids: np.ndarray) -> None:
-        for word_id in ids.tolist():
-            point = self.point_of.pop(word_id, None)
-            if point is not None:
-                self.removed[point] = True
-                self.n_removed += 1
-
-    def live(self) -> tuple[np.ndarray, np.ndarray]:
-        """Copies of the live words (lanes) and their ids, in point order (cleanRemovedPoints)."""
-        kept = np.flatnonzero(~self.removed[: self.n_points])
-        return self.words[kept], self.ids[kept]
+        """Mark words (distinct ids) removed; ids not held are ignored."""
+        points = self.point_of.rows(ids)
+        live = points >= 0
+        self.removed[points[live]] = True
+        self.n_removed += int(live.sum())
+        self.point_of.remove(ids[live])
 
     def needs_rebuild(self) -> bool:
         """FlannIndex::addPoints: the index holds more than REBALANCING x its size at the last build."""
@@ -410,19 +465,19 @@ class _Forest:
             return
         size = max(needed, 2 * self.ids.size)
         keep = self.n_points
-        self.words = _grown(self.words, size, 0, keep)
-        self.ids = _grown(self.ids, size, 0, keep)
-        self.removed = _grown(self.removed, size, False, keep)
-        self.checked = np.full(size, -1, np.int64)
+        self.words = _grown(self.words, size, keep)
+        self.ids = _grown(self.ids, size, keep)
+        self.removed = _grown(self.removed, size, keep)
+        self.checked = _grown(self.checked, size, keep)
 
     def reserve_nodes(self, needed: int) -> None:
         if needed <= self.feat.size:
             return
         size = max(needed, 2 * self.feat.size)
-        self.feat = _grown(self.feat, size, 0, self.n_nodes)
-        self.val = _grown(self.val, size, 0, self.n_nodes)
-        self.child1 = _grown(self.child1, size, 0, self.n_nodes)
-        self.child2 = _grown(self.child2, size, 0, self.n_nodes)
+        self.feat = _grown(self.feat, size, self.n_nodes)
+        self.val = _grown(self.val, size, self.n_nodes)
+        self.child1 = _grown(self.child1, size, self.n_nodes)
+        self.child2 = _grown(self.child2, size, self.n_nodes)
 
     def search(self, queries: np.ndarray, stamp: int, distances: np.ndarray, points: np.ndarray) -> None:
         n = self.n_points
@@ -431,22 +486,56 @@ class _Forest:
 
 
 class _Rebuild:
-    """A rebuild running in a thread (numba releases the GIL) on a snapshot of the live words, and the
-    changes made since, replayed into it at the swap."""
+    """A rebuild (cleanRemovedPoints + buildIndex) over a snapshot of the index: the live words of its
+    first ``n`` points. Run here or in a thread (numba releases the GIL); the changes made since the
+    snapshot are logged and replayed into the result in order.
 
-    def __init__(self, forest: _Forest, draws: list, swap_at: int) -> None:
-        self.forest = forest
-        self.draws = draws
+    The snapshot costs the frame a copy of the removed flags only: points below ``n`` never change
+    (new words are appended, a re-added id gets a new point), so the thread reads the current
+    arrays, or the ones they were copied from if they grow meanwhile."""
+
+    def __init__(self, forest: _Forest, rng: np.random.Generator, swap_at: int) -> None:
+        n = forest.n_points
+        self._snapshot = (forest.lanes, forest.n_bits, forest.words, forest.ids, forest.removed[:n].copy())
+        self._rng = rng  # used by the thread only until ``done`` (no other build meanwhile)
         self.swap_at = swap_at
-        self.log: list[tuple[str, np.ndarray, np.ndarray | None]] = []
+        self.log: list[tuple[str, np.ndarray | None, np.ndarray]] = []
+        self.forest: _Forest | None = None
         self.error: BaseException | None = None
-        self.thread = threading.Thread(target=self._run, name="vocabulary-kdtree-build", daemon=True)
+        self.seconds = 0.0
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self.run, name="vocabulary-kdtree-build", daemon=True)
 
-    def _run(self) -> None:
+    def run(self) -> None:
+        """Build (the thread's target; an error is kept for the main thread)."""
+        start = time.perf_counter()
         try:
-            self.forest.build(self.draws)
-        except BaseException as exc:  # noqa: BLE001 - re-raised in the main thread at the swap
+            lanes, n_bits, words, ids, removed = self._snapshot
+            kept = np.flatnonzero(~removed)
+            forest = _Forest(lanes, n_bits, words[kept], ids[kept])
+            forest.build(_draws(self._rng, kept.size))
+            self.forest = forest
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the main thread
             self.error = exc
+        finally:
+            self._snapshot = None
+            self.seconds = time.perf_counter() - start
+            self.done.set()
+
+    def replay(self, max_words: int | None = None) -> None:
+        """Apply the changes logged so far, in order, to the rebuilt forest (main thread, once
+        ``done``): all of them, or whole changes until ``max_words`` words were replayed."""
+        replayed = done = 0
+        for kind, lanes, ids in self.log:
+            if max_words is not None and replayed >= max_words:
+                break
+            if kind == "add":
+                self.forest.add(lanes, ids)
+            else:
+                self.forest.remove(ids)
+            replayed += ids.size
+            done += 1
+        del self.log[:done]
 
 
 class RandomizedKdTrees:
@@ -454,11 +543,13 @@ class RandomizedKdTrees:
 
     ``background_rebuild``: when the index has doubled, its rebuild (seconds at a million words: more
     than T_time) runs in a thread on a snapshot of the live words while the current trees keep serving
-    and taking words; the ``swap_searches``-th search after it started swaps the new trees in (waiting
-    for the thread if needed), the words added and removed since replayed into them. The swap point
-    counts searches (frames), not time, so the same words give the same answers whatever the machine's
-    load; the answers are those of a rebuild made at the snapshot followed by the same changes.
-    Without it, the rebuild happens in the call that doubles the index, as RTAB-Map's."""
+    and taking words; the ``max(swap_searches, words / SWAP_WORDS_PER_SEARCH)``-th search after it
+    started swaps the new trees in (waiting for the thread if needed), the words added and removed since replayed into them (from the first
+    search after the thread finished on, up to REPLAY_WORDS_PER_SEARCH words a search, the rest at
+    the swap). The swap point counts searches
+    (frames), not time, so the same words give the same answers whatever the machine's load; the
+    answers are those of a rebuild made at the snapshot followed by the same changes. Without it, the
+    rebuild happens in the call that doubles the index, as RTAB-Map's."""
 
     def __init__(self, n_bytes: int, seed: int = 0, *, background_rebuild: bool = False,
                  swap_searches: int = 1) -> None:
@@ -468,11 +559,14 @@ class RandomizedKdTrees:
         self._lanes = -(-n_bytes // 8)
         self._rng = np.random.default_rng(seed)
         self._forest = _Forest(self._lanes, self.n_bits, np.zeros((0, self._lanes), np.uint64), np.zeros(0, np.int64))
-        self._stamp = 0
+        self._stamp = 1  # checked[] starts at 0
         self._searches = 0
         self.background_rebuild = background_rebuild
         self.swap_searches = swap_searches
         self._rebuild: _Rebuild | None = None
+        self.rebuilds = 0  # rebuilds swapped in (the first build excluded)
+        self.last_rebuild_seconds = 0.0  # the last one's time in its thread
+        self.last_wait_seconds = 0.0  # what the last swap search waited for its thread
 
     def __len__(self) -> int:
         return len(self._forest.point_of)
@@ -488,7 +582,7 @@ class RandomizedKdTrees:
 
     # ------------------------------------------------------------------ changes
     def add(self, descriptors: np.ndarray, ids: np.ndarray) -> None:
-        """Add words ((N, n_bytes) uint8 with their ids) as FlannIndex::addPoints: inserted into every
+        """Add words ((N, n_bytes) uint8 with distinct ids) as FlannIndex::addPoints: inserted into every
         tree, then the index is rebuilt if it now holds more than REBALANCING x its size at the last
         build (removed words included). The first words are indexed at once (a build)."""
         ids = np.asarray(ids, np.int64)
@@ -498,51 +592,60 @@ class RandomizedKdTrees:
         forest = self._forest
         forest.add(lanes, ids)
         if self._rebuild is not None:
-            self._rebuild.log.append(("add", lanes.copy(), ids.copy()))
+            self._rebuild.log.append(("add", lanes, ids.copy()))
         elif not forest.roots.size or forest.needs_rebuild():
             self._start_rebuild(first=not forest.roots.size)
 
     def remove(self, ids: np.ndarray) -> None:
-        """Mark words removed (FLANN removePoint): searches skip them until the next rebuild."""
+        """Mark words removed (FLANN removePoint; distinct ids): searches skip them until the next rebuild."""
         ids = np.asarray(ids, np.int64)
         self._forest.remove(ids)
         if self._rebuild is not None:
             self._rebuild.log.append(("remove", None, ids.copy()))
 
-    def _draws(self, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The random choices of a build over ``n`` words: a permutation and one draw per inner node per tree."""
-        return [(self._rng.permutation(n).astype(np.int64),
-                 self._rng.integers(0, RAND_DIM, size=max(n - 1, 1)).astype(np.int64)) for _ in range(TREES)]
-
     def _start_rebuild(self, first: bool) -> None:
         """buildIndex over the live words (cleanRemovedPoints): here, or in a thread (not the first build)."""
-        words, ids = self._forest.live()
-        forest = _Forest(self._lanes, self.n_bits, words, ids)
-        draws = self._draws(ids.size)
+        delay = max(self.swap_searches, -(-self._forest.n_points // SWAP_WORDS_PER_SEARCH))
+        rebuild = _Rebuild(self._forest, self._rng, self._searches + delay)
         if first or not self.background_rebuild:
-            forest.build(draws)
-            self._forest = forest
+            rebuild.run()
+            self._swap_in(rebuild)
             return
-        self._rebuild = _Rebuild(forest, draws, self._searches + self.swap_searches)
-        self._rebuild.thread.start()
+        self._rebuild = rebuild
+        rebuild.thread.start()
 
-    def _maybe_swap(self) -> None:
-        rebuild = self._rebuild
-        if rebuild is None or self._searches < rebuild.swap_at:
-            return
-        rebuild.thread.join()
-        self._rebuild = None
+    def _swap_in(self, rebuild: _Rebuild) -> None:
         if rebuild.error is not None:
             raise rebuild.error
-        forest = rebuild.forest
-        for kind, lanes, ids in rebuild.log:
-            if kind == "add":
-                forest.add(lanes, ids)
-            else:
-                forest.remove(ids)
-        self._forest = forest
-        if forest.needs_rebuild():
+        rebuild.replay()
+        if self._forest.roots.size:
+            self.rebuilds += 1
+            self.last_rebuild_seconds = rebuild.seconds
+            logger.debug("kd-tree rebuilt over %d words in %.2f s", len(rebuild.forest.point_of), rebuild.seconds)
+        self._forest = rebuild.forest
+        if self._forest.needs_rebuild():
             self._start_rebuild(first=False)
+
+    def _maybe_swap(self) -> None:
+        """At the swap search: wait for the rebuild if needed and swap it in. Before it, once the thread
+        has finished, replay what was logged so far (spreads the replay over the searches; the content
+        at the swap is the same whenever the thread finished)."""
+        rebuild = self._rebuild
+        if rebuild is None:
+            return
+        swap = self._searches >= rebuild.swap_at
+        if not swap:
+            if rebuild.done.is_set() and rebuild.error is None:
+                rebuild.replay(REPLAY_WORDS_PER_SEARCH)
+            return
+        start = time.perf_counter()
+        rebuild.thread.join()
+        self.last_wait_seconds = time.perf_counter() - start
+        if self.last_wait_seconds > WAIT_WARNING_S:
+            logger.warning("kd-tree word search: the frame waited %.2f s for the trees' rebuild (%.1f s in its "
+                           "thread): the machine is loaded", self.last_wait_seconds, rebuild.seconds)
+        self._rebuild = None
+        self._swap_in(rebuild)
 
     # ------------------------------------------------------------------ search
     def search(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -565,3 +668,47 @@ class RandomizedKdTrees:
         rebuild, self._rebuild = self._rebuild, None
         if rebuild is not None:
             rebuild.thread.join()
+
+
+# The compiled functions called from Python (the others are inlined into them).
+_DISPATCHED = (_divide_tree, _insert, _heap_pop, _search_level, _search)
+_warm_lock = threading.Lock()
+_warmed = False
+
+
+def warm_up() -> float:
+    """Compile every function of the build, the insertion and the search (or load them from numba's
+    cache) on a few words, once per process, so that no frame pays it: ~7 s of CPU on the first run of
+    an install or source version, ~1 s loading the cache (numba's own start-up). Logged. Returns the
+    seconds it took (0.0 once done)."""
+    global _warmed
+    with _warm_lock:
+        if _warmed:
+            return 0.0
+        start = time.perf_counter()
+        words = np.random.default_rng(0).integers(0, 256, (48, 32), dtype=np.uint8)
+        trees = RandomizedKdTrees(32)
+        trees.add(words[:16], np.arange(16))  # a build
+        trees.add(words[16:24], np.arange(16, 24))  # insertions
+        trees.remove(np.arange(0, 4))
+        trees.search(words[:8])  # search, heap
+        trees.add(words[24:], np.arange(24, 48))  # doubled: a rebuild
+        trees.search(words[:8])
+        seconds = time.perf_counter() - start
+        stats = [getattr(f, "stats", None) for f in _DISPATCHED]  # None: NUMBA_DISABLE_JIT (Python)
+        compiled = sum(sum(s.cache_misses.values()) for s in stats if s is not None)
+        cache = stats[-1].cache_path if stats[-1] is not None else None
+        if stats[-1] is None:
+            logger.warning("kd-tree word search: numba's JIT is disabled (NUMBA_DISABLE_JIT): it runs as Python, "
+                           "100-500x slower")
+        elif _UNCACHED:
+            logger.warning("kd-tree word search: numba compiled it in %.1f s and cannot cache it (no writable cache "
+                           "directory beside the package or in the user's cache; set NUMBA_CACHE_DIR): every "
+                           "process compiles it again", seconds)
+        elif compiled:
+            logger.info("kd-tree word search: numba compiled it in %.1f s (once per install; cached in %s)",
+                        seconds, cache)
+        else:
+            logger.info("kd-tree word search: loaded from numba's cache (%s) in %.2f s", cache, seconds)
+        _warmed = True
+        return seconds

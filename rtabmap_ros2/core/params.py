@@ -16,6 +16,7 @@ Unknown names raise :class:`~rtabmap_ros2.errors.ParameterError`; YAML is read w
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass, field, fields, replace
@@ -93,36 +94,25 @@ class VocabularyParams:
         "for SLAM, with bayes.likelihood eq1, measured with bench/bench_slam.py)")
     index: str = _p(
         "kdtree",
-        "Nearest-neighbour index: flat (exact brute force), ivf (inverted file, incremental add/"
-        "remove), auto (flat until ivf_min_words words, then ivf), kdtree (RTAB-Map's Kp/NNStrategy 1: FLANN "
-        "randomized kd-trees over binary descriptors' bits, 32 checks, approximate; config/rtabmap_reference.yaml)",
+        "Word search: kdtree (RTAB-Map's Kp/NNStrategy 1: FLANN randomized kd-trees over binary descriptors' "
+        "bits, 32 checks, approximate; float descriptors (features.detector sift) use flat) or flat (exact brute "
+        "force, faiss). Issue 48: the exact search needed a likelihood trim that broke real images",
     )
     kdtree_seed: int = _p(
         0, "kdtree: seed of the trees' random choices (FLANN draws its own on every run, so RTAB-Map itself "
         "is not repeatable: bench/bench_lcd.py --ours-runs compares several seeds with several of its runs)")
-    ivf_min_words: int = _p(
-        10000, "auto: switch from the exact flat index to IVF at this size (bench/bench_vocabulary.py: "
-        "IVF is faster than flat from ~10k words, agreeing with exact search on 99.95 % of decisions)",
-        "words")
-    ivf_nprobe: int = _p(32, "IVF: number of inverted lists visited per query")
-    ivf_retrain_growth: float = _p(
-        4.0, "IVF: retrain the coarse quantiser when the vocabulary grew by this factor since the "
-        "last training", "ratio")
-    ivf_swap_frames: int = _p(
-        300, "IVF: a background (re)build is swapped in this many frames (quantize calls) after it "
-        "started, waiting for it then if needed: the same images give the same words whatever the load. "
-        "Builds take up to ~6 s at 200k words on one thread (bench/bench_vocabulary.py); with 50 frames "
-        "the 3,000-image runs waited for them (max pTime 7-12 s on a loaded machine); meanwhile the "
-        "exact flat index serves", "frames")
+    rebuild_swap_frames: int = _p(
+        300,
+        "kdtree: the trees are rebuilt when they have doubled (Kp/FlannRebalancingFactor 2), in a background "
+        "thread; the rebuild is swapped in this many frames (searches) after it started, and at least one frame "
+        "per 1,000 words it holds (core/kdtree.py SWAP_WORDS_PER_SEARCH: a 1M-word rebuild takes ~8 s of CPU), "
+        "waiting for it then if needed: the same images give the same words whatever the load", "frames")
 
     def __post_init__(self) -> None:
         _check(0.0 < self.nndr <= 1.0, "vocabulary.nndr", self.nndr, "in (0, 1]")
-        _check(self.index in ("auto", "flat", "ivf", "kdtree"), "vocabulary.index", self.index,
-               "auto, flat, ivf or kdtree")
-        _check(self.ivf_min_words >= 1000, "vocabulary.ivf_min_words", self.ivf_min_words, ">= 1000")
-        _check(self.ivf_nprobe >= 1, "vocabulary.ivf_nprobe", self.ivf_nprobe, ">= 1")
-        _check(self.ivf_swap_frames >= 1, "vocabulary.ivf_swap_frames", self.ivf_swap_frames, ">= 1")
-        _check(self.ivf_retrain_growth > 1.0, "vocabulary.ivf_retrain_growth", self.ivf_retrain_growth, "> 1")
+        _check(self.index in ("flat", "kdtree"), "vocabulary.index", self.index,
+               "kdtree or flat (auto and ivf were removed with the IVF word search, issue 50: flat is the exact search)")
+        _check(self.rebuild_swap_frames >= 1, "vocabulary.rebuild_swap_frames", self.rebuild_swap_frames, ">= 1")
 
 
 @dataclass(frozen=True)
@@ -504,6 +494,18 @@ class Params:
         return params
 
     @classmethod
+    def from_stored(cls, values: Mapping[str, Any]) -> "Params":
+        """The parameters a database was made with: as :meth:`from_mapping`, but a parameter removed
+        since (:data:`REMOVED_PARAMETERS`) is left out with a warning, so that an older map still
+        exports, reports and merges."""
+        flat = flatten(_unwrap_ros(values))
+        removed = sorted(name for name in flat if name in REMOVED_PARAMETERS)
+        if removed:
+            logging.getLogger(__name__).warning(
+                "the database's parameters %s no longer exist (made by an older version): left out", ", ".join(removed))
+        return cls.from_mapping({k: v for k, v in flat.items() if k not in REMOVED_PARAMETERS})
+
+    @classmethod
     def from_yaml(cls, path: str | os.PathLike, base: "Params | None" = None) -> "Params":
         """Parameters from a YAML file (plain nested keys, or a ROS 2 parameter file)."""
         import yaml   # here, not at import: 10 ms of every command that reads no YAML (optimize)
@@ -638,8 +640,29 @@ _NN_STRATEGIES = {0: "flat", 1: "kdtree", 3: "flat", 4: "flat"}
 _DETECTOR_STRATEGIES = {2: "orb", 1: "sift", 8: "gftt_orb"}
 
 
+# Parameters that were removed, with what to do instead: a config file written for an older version
+# gets this rather than "unknown parameter".
+_IVF_REMOVED = "the IVF word search was removed (issue 50): vocabulary.index is kdtree (RTAB-Map's) or flat (exact)"
+REMOVED_PARAMETERS: dict[str, str] = {
+    "vocabulary.ivf_min_words": _IVF_REMOVED + "; delete this key",
+    "vocabulary.ivf_nprobe": _IVF_REMOVED + "; delete this key",
+    "vocabulary.ivf_retrain_growth": _IVF_REMOVED + "; delete this key",
+    "vocabulary.ivf_swap_frames": "renamed vocabulary.rebuild_swap_frames (the kd-trees' background rebuild; "
+                                  "the IVF word search was removed, issue 50)",
+    **{f"bayes.{name}": f"not in RTAB-Map, removed in issue 48 ({what} lost against RTAB-Map on real images, "
+                        "docs/benchmarks.md); delete this key"
+       for name, what in (("likelihood_trim", "the trimmed Eq. 3-4"), ("min_evidence_ratio", "the evidence check"),
+                          ("refine_hops", "the hypothesis refinement"), ("refine_window", "the hypothesis refinement"),
+                          ("align_radius", "the view alignment"),
+                          ("discount_repeated_evidence", "the repeated evidence discount"),
+                          ("loop_closure_hop", "the loop closure hop; RTAB-Map's neighbourhoods are kept"))},
+}
+
+
 def resolve_name(name: str, value: Any) -> tuple[str, Any]:
     """Map any accepted spelling of a parameter to its dotted name, converting the value's unit."""
+    if name in REMOVED_PARAMETERS:
+        raise ParameterError(f"parameter {name!r} no longer exists: {REMOVED_PARAMETERS[name]}")
     if name in RTABMAP_ALIASES:
         dotted, convert = RTABMAP_ALIASES[name]
         try:

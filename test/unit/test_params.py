@@ -153,3 +153,27 @@ def test_round_trip_through_yaml(tmp_path):
     p.to_yaml(tmp_path / "out.yaml")
     again = Params.from_yaml(tmp_path / "out.yaml")
     assert again == p
+
+
+def test_the_removed_ivf_parameters_say_what_replaced_them():
+    """Issue 50: config files written for the IVF word search get a ParameterError naming the change."""
+    with pytest.raises(ParameterError, match="renamed vocabulary.rebuild_swap_frames"):
+        Params().with_value("vocabulary.ivf_swap_frames", 300)
+    with pytest.raises(ParameterError, match="IVF word search was removed"):
+        Params().with_overrides(["vocabulary.ivf_nprobe=32"])
+    with pytest.raises(ParameterError, match="auto and ivf were removed"):
+        Params().with_value("vocabulary.index", "auto")
+    assert Params().with_value("vocabulary.rebuild_swap_frames", 50).vocabulary.rebuild_swap_frames == 50
+
+
+def test_a_database_made_with_a_removed_parameter_still_loads(caplog):
+    """Issue 48 removed bayes.likelihood_trim and the other additions: a map made before still
+    exports (its stored parameters load, the removed one left out with a warning), while a config
+    file naming it gets an error saying what happened."""
+    stored = {"bayes": {"likelihood_trim": 0.5, "loop_threshold": 0.2}, "memory": {"stm_size": 12}}
+    with caplog.at_level("WARNING"):
+        params = Params.from_stored(stored)
+    assert params.bayes.loop_threshold == pytest.approx(0.2) and params.memory.stm_size == 12
+    assert "bayes.likelihood_trim" in caplog.text
+    with pytest.raises(ParameterError, match="removed in issue 48"):
+        Params.from_mapping(stored)
