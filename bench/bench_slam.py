@@ -326,7 +326,7 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
                           "main_thread_cpu_ms": round(float(cpu_ms[i]), 1), "wall_ms": round(float(wall_ms[i]), 1)}
                          for i in np.argsort(-ptime)[:TOP_SPIKES]],
         "sessions": [{"map_id": s.map_id, "source": s.source, "frames": s.frames, "nodes": s.nodes,
-                      "loop_intra": s.loop_intra, "loop_inter": s.loop_inter, "rejected": s.rejected,
+                      "loop_intra": s.loop_intra, "loop_inter": s.loop_inter, "rejected_online": s.rejected_online,
                       "max_ptime_ms": round(s.max_process_time_ms, 1),
                       "p95_ptime_ms": round(float(np.percentile(s.process_times_ms, 95)), 1),
                       "wm_size_end": s.wm_size} for s in sessions],
@@ -341,7 +341,7 @@ def run_mapping(bags: list[Path], db: Path, params: Params, gt: Trajectory, out_
         "local_map_per_session": [local_per_session.get(m, 0) for m in sorted(wm_per_session)],
         "loop_intra": sum(s.loop_intra for s in sessions), "loop_inter": sum(s.loop_inter for s in sessions),
         "links_by_type": summary["links_by_type"],
-        "rejected_by_global_optimisation": len(summary["rejected_loop_closures"]),
+        "rejected_by_global_optimisation": len(summary["loop_closures_rejected_by_global_optimization"]),
         "components": summary["components"], "component_sizes": summary["component_sizes"][:10],
         "ate": result_ate.to_dict(), "ate_per_session_m": per_session_ate,
         "ate_global_per_session_m": global_per_session,

@@ -27,6 +27,7 @@ SUBCOMMANDS = [
     "play",
     "optimize",
     "carmen2bag",
+    "tum2bag",
     "params",
 ]
 

@@ -3,13 +3,19 @@
 The 2014 paper's second experiment: bags are processed one after the other, as in a real
 multi-session trial, with one memory (one :class:`~rtabmap_ros2.core.rtabmap.Rtabmap`, one
 database) kept between them. A new map (session) starts with every bag and whenever odometry
-is reset inside a bag. Prints a progress bar, one line per session (nodes, WM size, intra /
-inter-session loop closures, max pTime) and a final line; writes the parameters used to
-``params.yaml`` next to the database, and with ``--stats FILE.csv`` one row per frame
-(:data:`STATS_COLUMNS`, as ``detect``'s ``detections.csv``). Sensor mounts come from each bag's
-``/tf_static``; for a bag without it, ``--set base_to_laser=[x,y,z,roll,pitch,yaw]`` and ``--set
-base_to_camera=[...]`` (the camera's optical frame) give them. Frames with bad sensor data are
-skipped with a warning.
+is reset inside a bag. Prints the mode (planar or 6 DoF, detection rate, grid sensor), per bag the
+topics it reads, a progress bar, one line per session (nodes, WM size, intra / inter-session loop
+closures, loop closures rejected while mapping, max pTime), per bag how many synchronised frames
+the detection rate skipped and where the sensor mounts came from, and a final line; writes the
+parameters used to ``params.yaml`` next to the database (they are stored in the database too,
+where ``export`` reads them), and with ``--stats FILE.csv`` one row per frame
+(:data:`STATS_COLUMNS`, as ``detect``'s ``detections.csv``; ``stamp`` in seconds, exact). Sensor
+mounts come from each bag's ``/tf_static``; for a bag without it, ``--set
+base_to_laser=[x,y,z,roll,pitch,yaw]`` and ``--set base_to_camera=[...]`` (the camera's optical
+frame) give them. Frames with bad sensor data are skipped with a warning.
+
+A hand-held camera or a robot moving in 3D: ``--set Reg/Force3DoF=false`` (6 DoF; the shipped
+config is a wheeled robot's, planar); every frame rather than 1 Hz: ``--set Rtabmap/DetectionRate=0``.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from rtabmap_ros2.cli.common_args import add_param_arguments
 
 log = logging.getLogger(__name__)
 
-# --stats FILE.csv columns (issue 14): one row per processed frame; stamp in seconds.
+# --stats FILE.csv columns (issue 14): one row per processed frame; stamp in seconds (exact, 9 decimals).
 STATS_COLUMNS = ("frame", "stamp", "location_id", "map_id", "loop_closure_id", "loop_closure_type",
                  "process_time_ms", "time_optimization_ms", "wm_size", "local_map_size", "retrieved",
                  "transferred")
@@ -36,7 +42,9 @@ STATS_COLUMNS = ("frame", "stamp", "location_id", "map_id", "loop_closure_id", "
 
 def stats_row(stats) -> dict:
     """The :data:`STATS_COLUMNS` of one frame's Statistics."""
-    return {"frame": stats.frame_index, "stamp": f"{stats.stamp_ns / 1e9:.9f}", "location_id": stats.location_id,
+    from rtabmap_ros2.io.trajectory import stamp_text
+
+    return {"frame": stats.frame_index, "stamp": stamp_text(stats.stamp_ns), "location_id": stats.location_id,
             "map_id": stats.map_id, "loop_closure_id": stats.loop_closure_id,
             "loop_closure_type": stats.loop_closure_type, "process_time_ms": round(stats.process_time_ms, 3),
             "time_optimization_ms": round(float(stats.timings_ms.get("optimization", 0.0)), 3),
@@ -59,7 +67,13 @@ def statistics_csv(path) -> Iterator[Optional[Callable]]:
 
 @dataclass
 class SessionSummary:
-    """What one session (map) added, as printed per session."""
+    """What one session (map) added, as printed per session.
+
+    ``frames`` counts the frames processed (after the detection rate); ``rejected_online`` the loop
+    closure hypotheses turned down while mapping (verification, the merge checks, RGBD/OptimizeMaxError),
+    not the stored loop closures ``export``'s global optimisation drops
+    (``loop_closures_rejected_by_global_optimization`` in its summary.json).
+    """
 
     map_id: int
     source: str
@@ -68,23 +82,35 @@ class SessionSummary:
     skipped: int = 0
     loop_intra: int = 0
     loop_inter: int = 0
-    rejected: int = 0
+    rejected_online: int = 0
     wm_size: int = 0
     local_map_size: int = 0
     max_process_time_ms: float = 0.0
     process_times_ms: list[float] = field(default_factory=list)
 
     def line(self) -> str:
-        return (f"session {self.map_id} ({self.source}): {self.nodes} nodes from {self.frames} frames, "
+        return (f"session {self.map_id} ({self.source}): {self.nodes} nodes from {self.frames} frames processed, "
                 f"WM {self.wm_size}, local map {self.local_map_size}, loop closures intra {self.loop_intra} "
-                f"/ inter {self.loop_inter} (rejected {self.rejected}), max pTime {self.max_process_time_ms:.0f} ms"
+                f"/ inter {self.loop_inter} ({self.rejected_online} rejected while mapping), "
+                f"max pTime {self.max_process_time_ms:.0f} ms"
                 + (f", {self.skipped} bad frames skipped" if self.skipped else ""))
+
+
+# What map --help says of the settings a camera-only or hand-held user needs (README "Hand-held
+# RGB-D camera").
+HELP_MODES = ("Planar or 6 DoF: registration.planar (Reg/Force3DoF) keeps x, y and yaw only; the shipped "
+              "config sets it for a wheeled robot with a laser: a hand-held camera or a robot moving in 3D needs "
+              "--set Reg/Force3DoF=false (a warning says so when the odometry leaves the plane). The detection "
+              "rate (Rtabmap/DetectionRate, 1 Hz) keeps one frame per second; 0 keeps every frame. The occupancy "
+              "grid comes from each node's laser scan, else its depth image (Grid/Sensor: 0 laser, 1 depth, 2 "
+              "both). Sensor mounts come from /tf_static, else --set base_to_camera=[x,y,z,roll,pitch,yaw] / "
+              "base_to_laser=[...]. The parameters are stored in the database: export reuses them.")
 
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "map", help="multi-session graph SLAM on ROS 2 bags (one session per bag), offline",
-        description=__doc__.splitlines()[0])
+        description=__doc__.splitlines()[0] + " " + HELP_MODES)
     parser.add_argument("bags", nargs="+", metavar="BAG", help="ROS 2 bags (folders), processed in this order")
     parser.add_argument("--db", required=True, metavar="FILE",
                         help="map database; an existing one is continued in a new session")
@@ -144,7 +170,8 @@ def prefetched(frames: Iterable, depth: int = PREFETCH_FRAMES) -> Iterator:
 
 def map_datasets(rtabmap, datasets: Iterable[tuple[str, object]], progress: bool = True,
                  on_statistics: Optional[Callable] = None,
-                 print_line: Callable[[str], None] = print) -> list[SessionSummary]:
+                 print_line: Callable[[str], None] = print,
+                 on_dataset_end: Optional[Callable[[str, object], None]] = None) -> list[SessionSummary]:
     """Process datasets one after the other with one memory, a new map per dataset.
 
     Args:
@@ -153,6 +180,8 @@ def map_datasets(rtabmap, datasets: Iterable[tuple[str, object]], progress: bool
         progress: show a tqdm progress bar.
         on_statistics: called with every frame's Statistics.
         print_line: where the per-session lines go.
+        on_dataset_end: called with (name, dataset) once a dataset is done, after its last
+            session's line.
 
     Returns:
         One :class:`SessionSummary` per session, in order.
@@ -190,8 +219,11 @@ def map_datasets(rtabmap, datasets: Iterable[tuple[str, object]], progress: bool
                 if on_statistics is not None:
                     on_statistics(stats)
             bar.close()
-    if current is not None:
-        print_line(current.line())
+            if current is not None:   # each dataset is a session of its own (or several)
+                print_line(current.line())
+                current = None
+            if on_dataset_end is not None:
+                on_dataset_end(name, dataset)
     return sessions
 
 
@@ -202,11 +234,72 @@ def _count(session: SessionSummary, stats) -> None:
         session.loop_intra += 1
     elif stats.loop_closure_type == "loop_inter":
         session.loop_inter += 1
-    session.rejected += int(bool(stats.rejected_loop_closure_id))
+    session.rejected_online += int(bool(stats.rejected_loop_closure_id))
     session.wm_size = stats.wm_size
     session.local_map_size = stats.local_map_size
     session.process_times_ms.append(stats.process_time_ms)
     session.max_process_time_ms = max(session.max_process_time_ms, stats.process_time_ms)
+
+
+def mode_line(params) -> str:
+    """What the run does that a user must know before reading the rest: planar or 6 DoF, the
+    detection rate, what the occupancy grid is made from; each with the setting that changes it."""
+    if params.registration.planar:
+        mode = ("planar, x / y / yaw only (registration.planar = Reg/Force3DoF true; a hand-held camera or a "
+                "robot moving in 3D: --set Reg/Force3DoF=false)")
+    else:
+        mode = ("6 DoF (registration.planar = Reg/Force3DoF false; a wheeled robot on a floor: "
+                "--set Reg/Force3DoF=true)")
+    rate = params.sync.rate_hz
+    rate_text = (f"{rate:g} Hz, one synchronised frame per period" if rate > 0 else "every frame")
+    grid = {"auto": "each node's laser scan, else its depth image", "laser": "laser scans",
+            "depth": "depth images", "both": "laser scans and depth images"}[params.grid.sensor]
+    return (f"mode: {mode}; detection rate: {rate_text} (Rtabmap/DetectionRate, 0 = every frame); "
+            f"occupancy grid: {grid} (grid.sensor = Grid/Sensor {params.grid.sensor})")
+
+
+def topics_line(name: str, dataset) -> str:
+    """The topics a bag is read from, and the streams it does not have."""
+    from rtabmap_ros2.io.bag import STREAMS
+
+    used = ", ".join(f"{dataset.stream_topics[s]} ({s})" for s in STREAMS if s in dataset.stream_topics)
+    missing = [dataset.topics.of(s) for s in STREAMS if s not in dataset.stream_topics]
+    return f"{name}: reading {used}" + (f"; not in the bag: {', '.join(missing)}" if missing else "")
+
+
+def bag_line(name: str, dataset, params) -> str:
+    """After a bag: how many synchronised frames the detection rate skipped, and where the sensor
+    mounts came from (/tf_static, the base_to_camera / base_to_laser parameters, or the default)."""
+    read = dataset.last_read
+    parts = []
+    if read is not None:
+        rate = params.sync.rate_hz
+        parts.append(f"{read.synchronised} synchronised frames, {read.frames} processed"
+                     + (f", {read.rate_limited} skipped by the detection rate ({rate:g} Hz: --set "
+                        f"Rtabmap/DetectionRate=0 keeps every frame)" if read.rate_limited else "")
+                     + (f", {read.bad} with a bad message skipped" if read.bad else ""))
+    for sensor, mount in dataset.mounts.items():
+        parts.append(f"{sensor} mount from {_mount_source(sensor, mount, params)}")
+    return f"{name}: " + "; ".join(parts)
+
+
+def _mount_source(sensor: str, mount, params) -> str:
+    from rtabmap_ros2.core.params import NodeParams
+
+    frames = f"{mount.base_frame} -> {mount.sensor_frame or '(no frame_id)'}"
+    if mount.kind == "tf_static":
+        return f"/tf_static ({frames})"
+    if mount.kind == "same_frame":
+        return f"the base itself ({mount.sensor_frame} is the odometry's child frame: identity)"
+    if mount.kind == "argument":
+        return "the caller"
+    name = f"base_to_{sensor}"
+    value = getattr(params.node, name)
+    if value != getattr(NodeParams(), name):
+        return f"the {name} parameter {list(value)} (no /tf_static {frames})"
+    default = ("the optical frame at the base origin, looking along base x" if sensor == "camera"
+               else "the laser at the base origin")
+    return f"the default, {default} (no /tf_static {frames}, {name} not set)"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -219,6 +312,7 @@ def run(args: argparse.Namespace) -> int:
     from rtabmap_ros2.cli.common_args import params_from_args
 
     params = params_from_args(args)
+    print(mode_line(params))
     db_path = Path(args.db).expanduser()
     if not db_path.parent.is_dir():
         raise BagError(f"--db {db_path}: folder {db_path.parent} does not exist")
@@ -229,10 +323,13 @@ def run(args: argparse.Namespace) -> int:
     mounts = {"fallback_T_base_laser": from_xyz_rpy(params.node.base_to_laser),
               "fallback_T_base_camera": from_xyz_rpy(params.node.base_to_camera)}
     datasets = [(Path(b).name, BagDataset(b, sync=params.sync, **mounts)) for b in args.bags]
+    for name, dataset in datasets:
+        print(topics_line(name, dataset))
     t0 = time.perf_counter()
     with Rtabmap(params, db_path, delete_existing=args.overwrite) as rtabmap, \
             statistics_csv(stats_path) as on_statistics:
-        sessions = map_datasets(rtabmap, datasets, progress=not args.no_progress, on_statistics=on_statistics)
+        sessions = map_datasets(rtabmap, datasets, progress=not args.no_progress, on_statistics=on_statistics,
+                                on_dataset_end=lambda name, dataset: print(bag_line(name, dataset, params)))
         rtabmap.flush()
     elapsed = time.perf_counter() - t0
     params.to_yaml(db_path.parent / "params.yaml")

@@ -12,13 +12,14 @@ link of a database (WM and LTM) read-only and optimises each connected component
   agree with most others (:func:`consensus_guess`: robust to false loop closures);
 * gtsam optimisation (``core.optimizer.optimize``) with all links, robust per ``graph.robust``
   (dynamic covariance scaling; loop closures inconsistent with the rest are dropped);
-* planar (x, y, yaw) when ``registration.planar`` and the nodes have laser scans, as online.
+* planar (x, y, yaw) when ``registration.planar`` (RTAB-Map's Reg/Force3DoF), as online, else 6 DoF.
 
 Components other than the largest are maps never connected to it by a loop closure (the paper's
 §IV worst case): each is optimised on its own, rooted at its own newest node's odometry pose.
 
-:func:`global_grid` and :func:`global_cloud` build the occupancy grid (laser scans) and the RGB-D
-point cloud of the optimised global map.
+:func:`global_grid` and :func:`global_cloud` build the occupancy grid (laser scans and / or depth
+images, ``grid.sensor``) and the RGB-D point cloud of the optimised global map;
+:func:`assemble_global_grid` also says what the grid was made from, and why it is empty when it is.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import numpy as np
 
 from rtabmap_ros2.core.database import Database
 from rtabmap_ros2.core.graph import Link, LinkType, connected_components, consensus_guess
-from rtabmap_ros2.core.grid import OccupancyGrid, assemble_cloud, build_grid, voxel_filter
+from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid, assemble_cloud, depth_cells, voxel_filter
 from rtabmap_ros2.core.optimizer import OptimizationResult, optimize
 from rtabmap_ros2.core.params import Params
 
@@ -113,13 +114,12 @@ def load_global_map(database_path: str | os.PathLike, params: Params) -> GlobalM
     with Database(database_path, read_only=True) as db:
         nodes = db.load_nodes()
         stored_links = db.load_links()
-        has_scans = bool(db.load_scans())
     odom = {i: n.T_odom_base for i, n in nodes.items() if n.T_odom_base is not None}
     if len(odom) < len(nodes):
         log.warning("%d of %d nodes have no odometry pose (appearance-only mode): left out of the global map",
                     len(nodes) - len(odom), len(nodes))
     links = [link for link in stored_links if link.from_id in odom and link.to_id in odom]
-    planar = bool(params.registration.planar and has_scans)
+    planar = bool(params.registration.planar)
     components = connected_components(odom.keys(), links)
     poses: dict[int, np.ndarray] = {}
     roots, results, rejected = [], [], []
@@ -153,20 +153,96 @@ def _selected(global_map: GlobalMap, nodes: Optional[Iterable[int]]) -> dict[int
     return {n: global_map.poses[n] for n in nodes if n in global_map.poses}
 
 
-def global_grid(global_map: GlobalMap, database: Database, params: Params,
-                nodes: Optional[Iterable[int]] = None) -> OccupancyGrid:
-    """Occupancy grid of the laser scans at the optimised poses.
+@dataclass
+class GlobalGrid:
+    """The global map's occupancy grid and what it was made from.
+
+    Attributes:
+        grid: the grid (1x1 unknown when nothing was observed).
+        sensor: ``grid.sensor`` as given (auto, laser, depth, both).
+        laser_nodes: nodes whose laser scan was cast.
+        depth_nodes: nodes whose depth image was cast.
+        empty_reason: why no cell is known ('' when some are): a sentence naming the cause and the
+            parameter to change.
+    """
+
+    grid: OccupancyGrid
+    sensor: str
+    laser_nodes: int = 0
+    depth_nodes: int = 0
+    empty_reason: str = ""
+
+    def source(self) -> str:
+        """What the cells come from, e.g. ``laser scans of 94 nodes`` (grid.sensor auto)."""
+        parts = [f"{what} of {n} nodes" for what, n in (("laser scans", self.laser_nodes),
+                                                       ("depth images", self.depth_nodes)) if n]
+        return f"{' and '.join(parts) or 'nothing'} (grid.sensor {self.sensor})"
+
+
+def assemble_global_grid(global_map: GlobalMap, database: Database, params: Params,
+                         nodes: Optional[Iterable[int]] = None) -> GlobalGrid:
+    """Occupancy grid of the laser scans and / or depth images (``grid.sensor``) at the optimised
+    poses; an empty grid is logged as a warning with its reason.
 
     Args:
         global_map: from :func:`load_global_map`.
         database: the same database (open, read-only is fine).
-        params: ``grid`` (resolution, range_max).
+        params: ``grid`` (resolution, range_max, sensor, depth decimation and heights).
         nodes: node ids to use; default the largest component (other components are in frames
             unrelated to it and would be drawn over it).
     """
     poses = _selected(global_map, nodes)
-    scans = database.load_scans(ids=list(poses))
-    return build_grid({n: poses[n] for n in scans}, scans, params.grid)
+    sensor = params.grid.sensor
+    scans = database.load_scans(ids=list(poses)) if sensor != "depth" and poses else {}
+    if sensor == "laser":
+        depth_ids: list[int] = []
+    elif sensor == "auto":
+        depth_ids = sorted(n for n in poses if n not in scans)
+    else:
+        depth_ids = sorted(poses)
+    if sensor == "depth":
+        scans = {}
+    accumulator = GridAccumulator(params.grid)
+    for node_id, scan in scans.items():
+        accumulator.add(poses[node_id], scan)
+    depth_nodes = 0
+    for start in range(0, len(depth_ids), CLOUD_CHUNK_NODES):
+        chunk = depth_ids[start:start + CLOUD_CHUNK_NODES]
+        cameras = {s.id: s.camera for s in database.load_signatures(chunk) if s.camera is not None}
+        for node_id, camera in cameras.items():
+            depth = database.load_sensor_blobs(node_id).depth_m()
+            if depth is not None:
+                accumulator.add_depth(depth_cells(poses[node_id], depth, camera, params.grid))
+                depth_nodes += 1
+    result = GlobalGrid(accumulator.grid(), sensor, len(scans), depth_nodes)
+    if not accumulator.observed:
+        result.empty_reason = _empty_grid_reason(len(poses), result, params)
+        log.warning("the occupancy grid is empty: %s", result.empty_reason)
+    return result
+
+
+def _empty_grid_reason(posed: int, result: GlobalGrid, params: Params) -> str:
+    """Why nothing reached the grid (a sentence naming the parameter to change)."""
+    g = params.grid
+    if not posed:
+        return "the map has no node with a pose (appearance-only mapping, no odometry)"
+    if not result.laser_nodes and not result.depth_nodes:
+        if g.sensor == "laser":
+            return (f"grid.sensor is laser (Grid/Sensor 0) and none of the map's {posed} nodes has a laser scan: "
+                    "set grid.sensor to auto or depth (Grid/Sensor=1) to build it from the depth images")
+        return (f"none of the map's {posed} nodes has a depth image with a camera model"
+                + ("" if g.sensor == "depth" else " or a laser scan") + ": no sensor to build it from")
+    heights = (f"ground up to {g.ground_height:g} m, obstacles up to "
+               + (f"{g.max_obstacle_height:g} m" if g.max_obstacle_height else "any height")
+               + (f", nothing below {g.min_ground_height:g} m" if g.min_ground_height else ""))
+    return (f"no point of the {result.depth_nodes} depth images lies within grid.range_max ({g.range_max:g} m) "
+            f"and the height limits ({heights}; map-frame z)")
+
+
+def global_grid(global_map: GlobalMap, database: Database, params: Params,
+                nodes: Optional[Iterable[int]] = None) -> OccupancyGrid:
+    """Occupancy grid of the optimised global map (:func:`assemble_global_grid`'s grid)."""
+    return assemble_global_grid(global_map, database, params, nodes).grid
 
 
 def global_cloud(global_map: GlobalMap, database: Database, params: Params,
@@ -205,4 +281,5 @@ def global_cloud(global_map: GlobalMap, database: Database, params: Params,
     return pts, (cols if cols is not None else np.zeros((0, 3), np.uint8))
 
 
-__all__ = ["GlobalMap", "consensus_guess", "global_cloud", "global_grid", "load_global_map"]
+__all__ = ["GlobalGrid", "GlobalMap", "assemble_global_grid", "consensus_guess", "global_cloud", "global_grid",
+           "load_global_map"]

@@ -1,4 +1,4 @@
-"""Occupancy grid from laser scans, and an RGB-D point cloud, at the optimised poses.
+"""Occupancy grid from laser scans and depth images, and an RGB-D point cloud, at the optimised poses.
 
 Grid conventions are nav_msgs/OccupancyGrid's: ``data[row, col]`` with row = y index and col = x
 index counted from ``origin_xy`` (the map position of cell (0, 0)'s corner), values -1 unknown,
@@ -11,6 +11,13 @@ when never observed. Beams without a return (NaN, inf or >= range_max) clear fre
 range_max: the laser saw nothing there, which is evidence of free space; this is what lets
 open areas appear free. RTAB-Map does the same with ``Grid/RayTracing`` and its
 ``Grid/RangeMax``.
+
+Depth images (RTAB-Map's ``Grid/Sensor`` 1, its LocalGridMaker with the passthrough segmentation):
+every ``depth_decimation``-th pixel within ``range_max`` is placed in the map frame at the node's
+pose; points at or below the ground height (map-frame z) are ground, those above it (up to
+``max_obstacle_height``) obstacles. Projected on the ground plane, one beam per cell runs from the
+camera to each obstacle cell (a hit at its end) and to each ground cell (free up to and including
+it), cast like the laser's (:func:`depth_cells`, :meth:`GridAccumulator.add_depth`).
 """
 
 from __future__ import annotations
@@ -103,8 +110,35 @@ class GridAccumulator:
     def add(self, T_map_base: np.ndarray, scan: LaserScan, weight: int = 1) -> None:
         """Ray-cast one scan taken at ``T_map_base`` (4x4) into the counts; ``weight`` -1 takes
         back a scan added before at the same pose (the counts are sums: exactly)."""
+        self._add_beams(*_beams_map(T_map_base, scan, self.range_max), weight)
+
+    def add_depth(self, cells: "DepthCells", weight: int = 1) -> None:
+        """Cast one depth image's cells (:func:`depth_cells`): a beam from the camera to each
+        obstacle cell (hit) and to each ground cell (free, its own cell included); ``weight`` -1
+        takes them back."""
+        ends = np.concatenate([cells.obstacles_xy, cells.ground_xy])
+        if not len(ends):
+            return
+        origins = np.broadcast_to(cells.origin_xy, ends.shape)
+        is_hit = np.arange(len(ends)) < len(cells.obstacles_xy)
+        self._add_beams(origins, ends, is_hit, weight, free_ends=~is_hit, once_per_cell=True)
+
+    @property
+    def observed(self) -> bool:
+        """Whether any cell was hit or crossed."""
+        return bool(((self._hits + self._misses) > 0).any())
+
+    def _add_beams(self, origin_pts: np.ndarray, end_pts: np.ndarray, is_hit: np.ndarray, weight: int,
+                   free_ends: np.ndarray | None = None, once_per_cell: bool = False) -> None:
+        """Ray-cast beams (origins and ends (N,2), map frame, m): a hit on the end cell of every
+        beam with ``is_hit``, a miss on each cell crossed before the end, and a miss on the end cell
+        of every beam with ``free_ends`` (ground seen there).
+
+        ``once_per_cell`` (a depth image: thousands of beams fan out from one camera): one miss per
+        cell however many beams cross it, and none on a cell the same beams hit, so that a view
+        counts once for or against a cell, as a laser scan's sparse beams do.
+        """
         res = self.resolution
-        origin_pts, end_pts, is_hit = _beams_map(T_map_base, scan, self.range_max)
         if not len(end_pts):
             return
         lo = np.floor(np.minimum(origin_pts.min(axis=0), end_pts.min(axis=0)) / res).astype(np.int64)
@@ -129,6 +163,12 @@ class GridAccumulator:
         misses = self._misses.reshape(-1)
         # Hits: the end cell of every beam with a return.
         hits += weight * np.bincount(end_cells[is_hit], minlength=hits.size).astype(np.int32)
+        crossed = np.zeros(misses.size, bool) if once_per_cell else None
+        if free_ends is not None:
+            if crossed is not None:
+                crossed[end_cells[free_ends]] = True
+            else:
+                misses += weight * np.bincount(end_cells[free_ends], minlength=misses.size).astype(np.int32)
         # Misses: cells crossed by each beam before its end (ray casting, SAMPLES_PER_CELL per cell),
         # in chunks of about MAX_SAMPLES_PER_CHUNK samples (bounded memory).
         vec = end_pts - origin_pts
@@ -136,8 +176,15 @@ class GridAccumulator:
         chunk_of = np.cumsum(n_samples) // MAX_SAMPLES_PER_CHUNK
         bounds = np.flatnonzero(np.diff(chunk_of)) + 1
         for lo_b, hi_b in zip(np.r_[0, bounds], np.r_[bounds, len(vec)]):
-            _cast_misses(origin_pts[lo_b:hi_b], vec[lo_b:hi_b], n_samples[lo_b:hi_b], end_cells[lo_b:hi_b],
-                         flat, misses, weight)
+            cells = _crossed_cells(origin_pts[lo_b:hi_b], vec[lo_b:hi_b], n_samples[lo_b:hi_b],
+                                   end_cells[lo_b:hi_b], flat)
+            if crossed is not None:
+                crossed[cells] = True
+            else:
+                misses += weight * np.bincount(cells, minlength=misses.size).astype(np.int32)
+        if crossed is not None:
+            crossed[end_cells[is_hit]] = False
+            misses += weight * crossed.astype(np.int32)
 
     def _ensure(self, lo_cell: np.ndarray, hi_cell: np.ndarray) -> None:
         """Grow the canvas (with slack, so growth is rare) to hold cells lo_cell..hi_cell."""
@@ -180,6 +227,63 @@ class GridAccumulator:
         data[hits > misses] = OCCUPIED
         origin = (self._origin_cell + np.array([c0, r0])) * res
         return OccupancyGrid(data, res, (float(origin[0]), float(origin[1])))
+
+
+@dataclass(frozen=True)
+class DepthCells:
+    """What one depth image says about the ground plane, in the map frame (m).
+
+    Attributes:
+        origin_xy: (2,) the camera centre projected on the ground plane.
+        obstacles_xy: (N,2) centres of the cells holding an obstacle point.
+        ground_xy: (M,2) centres of the cells holding ground points and no obstacle point.
+    """
+
+    origin_xy: np.ndarray
+    obstacles_xy: np.ndarray
+    ground_xy: np.ndarray
+
+
+def depth_cells(T_map_base: np.ndarray, depth_m: np.ndarray, camera: CameraModel, params: GridParams) -> DepthCells:
+    """Obstacle and ground cells of a depth image taken at ``T_map_base`` (module doc).
+
+    Args:
+        T_map_base: 4x4 pose of the node's base in the map frame.
+        depth_m: HxW float32 depth (m), NaN or 0 invalid, registered to ``camera``.
+        camera: pinhole model (``T_base_camera`` to the optical frame).
+        params: resolution, range_max (depth limit, 0 = none), depth_decimation and the heights
+            (map-frame z, m): ground up to ``ground_height``, obstacles above it up to
+            ``max_obstacle_height`` (0 = no limit), nothing below ``min_ground_height`` (0 = no limit).
+    """
+    step = params.depth_decimation
+    d = np.asarray(depth_m)[::step, ::step]
+    rows, cols = np.mgrid[0:depth_m.shape[0]:step, 0:depth_m.shape[1]:step]
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(d) & (d > 0)
+        if params.range_max > 0:
+            valid &= d <= params.range_max
+    if depth_m.shape != (camera.height, camera.width):
+        camera = camera.scaled(depth_m.shape[1], depth_m.shape[0])
+    T = T_map_base @ camera.T_base_camera
+    p_cam = camera.back_project(np.stack([cols[valid], rows[valid]], axis=1).astype(np.float64), d[valid])
+    points = p_cam @ T[:3, :3].T + T[:3, 3]
+    z = points[:, 2]
+    ground = z <= params.ground_height
+    obstacle = ~ground
+    if params.min_ground_height:
+        ground &= z >= params.min_ground_height
+    if params.max_obstacle_height:
+        obstacle &= z <= params.max_obstacle_height
+    res = params.resolution
+    obstacle_cells = np.unique(np.floor(points[obstacle, :2] / res).astype(np.int64), axis=0)
+    ground_cells = np.unique(np.floor(points[ground, :2] / res).astype(np.int64), axis=0)
+    if len(obstacle_cells) and len(ground_cells):
+        # A cell holding both is an obstacle (a chair's legs stand on the floor).
+        lo = np.minimum(obstacle_cells.min(axis=0), ground_cells.min(axis=0))
+        dims = tuple(np.maximum(obstacle_cells.max(axis=0), ground_cells.max(axis=0)) - lo + 1)
+        taken = np.ravel_multi_index((obstacle_cells - lo).T, dims)
+        ground_cells = ground_cells[~np.isin(np.ravel_multi_index((ground_cells - lo).T, dims), taken)]
+    return DepthCells(T[:2, 3].copy(), (obstacle_cells + 0.5) * res, (ground_cells.reshape(-1, 2) + 0.5) * res)
 
 
 def build_grid(poses: dict[int, np.ndarray], scans: dict[int, LaserScan], params: GridParams) -> OccupancyGrid:
@@ -299,12 +403,13 @@ def _dilated(cells: np.ndarray) -> np.ndarray:
     return out
 
 
-def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, end_cells: np.ndarray,
-                 flat, miss_count: np.ndarray, weight: int = 1) -> None:
-    """Add ``weight`` misses per cell crossed by each beam before its end cell (ray casting)."""
+def _crossed_cells(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, end_cells: np.ndarray,
+                   flat) -> np.ndarray:
+    """Flat indices of the cells each beam crosses before its end cell, once per (beam, cell)
+    (ray casting; a cell crossed by two beams is listed twice)."""
     total = int(n_samples.sum())
     if not total:
-        return
+        return np.zeros(0, np.int64)
     beam, samples = _beam_samples(origins, vec, n_samples)
     cells = flat(samples)
     # One miss per (beam, cell) and never on the beam's own end cell. A segment crosses each
@@ -313,7 +418,7 @@ def _cast_misses(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray, en
     first = np.ones(total, bool)
     first[1:] = (cells[1:] != cells[:-1]) | (beam[1:] != beam[:-1])
     keep = first & (cells != end_cells[beam])
-    miss_count += weight * np.bincount(cells[keep], minlength=miss_count.size).astype(np.int32)
+    return cells[keep]
 
 
 def _samples_per_beam(vec: np.ndarray, cell: float) -> np.ndarray:
@@ -448,5 +553,5 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
         f.write(vertex.tobytes())
 
 
-__all__ = ["FREE", "OCCUPIED", "UNKNOWN", "OccupancyGrid", "assemble_cloud", "build_grid", "voxel_filter",
-           "write_ply"]
+__all__ = ["FREE", "OCCUPIED", "UNKNOWN", "DepthCells", "GridAccumulator", "OccupancyGrid", "assemble_cloud",
+           "build_grid", "depth_cells", "voxel_filter", "write_ply"]

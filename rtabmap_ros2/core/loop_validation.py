@@ -1,9 +1,11 @@
 """Whether a verified loop closure is kept, within a session and between sessions.
 
 The 2014 paper adds every loop closure that passes visual verification and ICP (§II-A), and
-RTAB-Map judges it afterwards by the optimised graph (RGBD/OptimizeMaxError). Beyond the papers,
-because perceptual aliasing in a building (look-alike posters, symmetric corridors) passes
-RANSAC and ICP and a multi-session map has nothing to judge the first link between two maps
+RTAB-Map judges it afterwards by the optimised graph (RGBD/OptimizeMaxError), against the
+covariance the registration gives it (PnP's from its inliers' residuals: a hand-held camera's
+loop closure taken in motion blur, degrees off, is rejected there). Beyond the papers, because
+perceptual aliasing in a building (look-alike posters, symmetric corridors) passes the visual
+registration and ICP and a multi-session map has nothing to judge the first link between two maps
 against (the 2014 paper's §IV asks for this kind of safety for multi-session):
 
 - :class:`LoopValidator` holds a loop closure that would join two unconnected maps until others
@@ -31,8 +33,8 @@ from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis
 from rtabmap_ros2.core.graph import Link, LinkType, agree, agree_many, default_information, loop_type, residuals
 from rtabmap_ros2.core.grid import scan_conflict
 from rtabmap_ros2.core.memory import Memory
-from rtabmap_ros2.core.params import Params
-from rtabmap_ros2.core.registration import assemble_scan_map, epipolar_check, icp_2d, register
+from rtabmap_ros2.core.params import Params, RegistrationParams
+from rtabmap_ros2.core.registration import assemble_scan_map, epipolar_check, icp_2d, register, uses_pnp
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.statistics import Statistics
 
@@ -95,8 +97,21 @@ class LoopValidator:
             return Link(current.id, old.id, kind, transforms.identity(),
                         default_information(self.params.graph.loop_closure_variance))
         params = replace(self.params.registration, planar=bool(self.local.planar))
-        reg = register(current, old, params)
+        reg = register(current, old, params, descriptors=self._descriptors(current, old, params))
         return Link(current.id, old.id, kind, reg.T_from_to, reg.information)
+
+    def _descriptors(self, current: Signature, old: Signature,
+                     params: RegistrationParams) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """The two nodes' descriptors for PnP's guided matching: each keypoint's word's, from the
+        vocabulary (the descriptor that made the word, within the NNDR test of the keypoint's own);
+        None when the guided matching is off or a word is no longer in the vocabulary."""
+        icp = params.icp_refine and current.scan is not None and old.scan is not None
+        if not uses_pnp(params, icp) or params.guided_window <= 0:
+            return None
+        vocabulary = self.memory.vocabulary
+        if not (vocabulary.present(current.word_ids).all() and vocabulary.present(old.word_ids).all()):
+            return None
+        return vocabulary.descriptors_of(current.word_ids), vocabulary.descriptors_of(old.word_ids)
 
     def held_nodes(self) -> set[int]:
         """Both ends of every held loop closure: they must stay in WM to be confirmed."""

@@ -29,6 +29,7 @@ from rtabmap_ros2.errors import ParameterError
 HALF_PI = math.pi / 2
 NODE_QOS = ("auto", "reliable", "sensor_data")
 NODE_IMAGE_TRANSPORTS = ("auto", "raw", "compressed")
+GRID_SENSORS = ("auto", "laser", "depth", "both")
 
 
 def _p(default: Any, doc: str, unit: str = "") -> Any:
@@ -270,13 +271,51 @@ class BayesParams:
 
 @dataclass(frozen=True)
 class RegistrationParams:
-    """Loop closure verification (2014 §II-A): RANSAC on 3D words, 2D ICP refinement."""
+    """Loop closure verification (2014 §II-A): PnP (or RANSAC on 3D words), 2D ICP refinement."""
 
     min_inliers: int = _p(20, "I: minimum RANSAC inliers to accept a loop closure (paper: 5; "
-                          "20 measured in bench/bench_registration.py to reject perceptual aliasing)")
-    inlier_distance: float = _p(0.1, "RANSAC inlier threshold on 3D word positions", "m")
-    ransac_iterations: int = _p(500, "RANSAC hypotheses", "iterations")
-    planar: bool = _p(True, "Robot moves on a plane: keep x, y, yaw only (Reg/Force3DoF)")
+                          "20 measured in bench/bench_registration.py to reject perceptual aliasing; RTAB-Map's "
+                          "Vis/MinInliers)")
+    estimation: str = _p(
+        "auto", "Loop closure transform (RTAB-Map's Vis/EstimationType): pnp (1: the 3D words of one node, "
+        "from its depth, against the 2D keypoints of the other, RANSAC on the reprojection error in pixels, "
+        "then refined on both nodes' words), 3d (0: RANSAC on 3D-3D word pairs, the 2014 paper's; "
+        "inlier_distance) or auto: pnp in 6 DoF, 3d when planar with laser scans, where 2D ICP then decides x, "
+        "y and yaw (the 2014 paper's pipeline; PnP there took the simulated building's seed 0 ATE from 0.0161 "
+        "to 0.0177 m and accepted 2 look-alike loop closures, bench/bench_slam.py). On the 24 real TUM loop "
+        "pairs: bench/bench_registration.py")
+    inlier_distance: float = _p(0.1, "3d estimation: RANSAC inlier threshold on 3D word positions", "m")
+    ransac_iterations: int = _p(500, "RANSAC hypotheses (both estimations)", "iterations")
+    pnp_reprojection_error: float = _p(
+        2.0, "pnp: a word pair is an inlier when it reprojects within this distance (RTAB-Map's "
+        "Vis/PnPReprojError)", "px")
+    pnp_refine_iterations: int = _p(
+        5, "pnp: refinements of the RANSAC estimate, each re-selecting the inliers at the current estimate "
+        "and minimising their reprojection errors (RTAB-Map's Vis/PnPRefineIterations; 0 = RANSAC's answer)",
+        "iterations")
+    bundle_adjustment: bool = _p(
+        True, "pnp: refine on the reprojection errors in both images (the from node's words, from its depth, "
+        "in the to image and the to node's in the from image: a two-view bundle adjustment of the pose with "
+        "the words held at their depth), not in the to image only (RTAB-Map's Vis/BundleAdjustment)")
+    pnp_max_variance: float = _p(
+        0.0025, "pnp: reject a loop closure whose translation variance (from the inliers' 3D residuals, as "
+        "its information matrix) is above this (RTAB-Map's Vis/PnPMaxVariance, there 0 = off). 0.0025 m^2 "
+        "(5 cm standard deviation): on the 24 real TUM loop pairs it rejects the 3 PnP estimates whose words "
+        "disagree that much (7.2, 6.7 and 2.7 cm, 2.2 to 3.3 deg off the motion capture; the graph check "
+        "cannot catch them, their covariance is as loose) and none within 3 cm / 1.5 deg; the accepted "
+        "ones on fr1_xyz have 1.0-1.3 cm (bench/bench_registration.py). 0 = off", "m^2")
+    guided_window: float = _p(
+        10.0, "pnp: after a first estimate from the shared words (8 inliers or more), match every keypoint "
+        "with depth to the keypoints of the other image within this distance of where the estimate projects "
+        "it (descriptor distance, nearest neighbour ratio), then refine again on these matches (RTAB-Map's "
+        "Vis/CorGuessWinSize, here with the first estimate as the guess; 0 = the shared words only, as "
+        "RTAB-Map's loop closures). On the 24 real TUM loop pairs 16 accepted instead of 9, as near the "
+        "images' own optimum (bench/bench_registration.py)", "px")
+    planar: bool = _p(
+        False, "Robot moves on a plane: registration and optimisation keep x, y and yaw only (RTAB-Map's "
+        "Reg/Force3DoF, false by default as there: 6 DoF; config/rtabmap.yaml sets it for its wheeled robot "
+        "with a laser). Applied as given whatever the sensors; when the odometry leaves the plane (0.1 m, 5 deg "
+        "from the session's first pose) a warning says so: a hand-held camera needs false")
     icp_refine: bool = _p(True, "Refine visual loop closures with 2D ICP on the laser scans")
     neighbor_link_refining: bool = _p(
         False, "Refine each neighbour link with 2D ICP of the new scan against the previous nodes' "
@@ -298,6 +337,14 @@ class RegistrationParams:
         _check(self.min_inliers >= 3, "registration.min_inliers", self.min_inliers, ">= 3")
         _check(self.inlier_distance > 0, "registration.inlier_distance", self.inlier_distance, "> 0")
         _check(self.ransac_iterations >= 1, "registration.ransac_iterations", self.ransac_iterations, ">= 1")
+        _check(self.estimation in ("auto", "pnp", "3d"), "registration.estimation", self.estimation,
+               "auto, pnp or 3d")
+        _check(self.pnp_reprojection_error > 0, "registration.pnp_reprojection_error", self.pnp_reprojection_error,
+               "> 0")
+        _check(self.pnp_refine_iterations >= 0, "registration.pnp_refine_iterations", self.pnp_refine_iterations,
+               ">= 0")
+        _check(self.pnp_max_variance >= 0, "registration.pnp_max_variance", self.pnp_max_variance, ">= 0")
+        _check(self.guided_window >= 0, "registration.guided_window", self.guided_window, ">= 0")
         _check(self.icp_max_correspondence_distance > 0, "registration.icp_max_correspondence_distance",
                self.icp_max_correspondence_distance, "> 0")
         _check(self.icp_iterations >= 1, "registration.icp_iterations", self.icp_iterations, ">= 1")
@@ -315,7 +362,9 @@ class GraphParams:
     """Graph SLAM (2014 §II-B, C): optimisation and sessions."""
 
     optimizer: str = _p("lm", "Pose graph solver (gtsam): lm (Levenberg-Marquardt), gn (Gauss-Newton), "
-                        "dogleg")
+                        "dogleg (Powell's, from a wide trust region; LM where the Gauss-Newton system is singular), "
+                        "auto (LM, dogleg once LM's damping fails in two iterations running: the default of "
+                        "rtabmap-ros2 optimize)")
     iterations: int = _p(100, "Maximum optimiser iterations", "iterations")
     robust: bool = _p(True, "Dynamic covariance scaling on loop closures; drop those it rejects")
     robust_reject_scale: float = _p(
@@ -367,7 +416,8 @@ class GraphParams:
                                       "m^2, rad^2")
 
     def __post_init__(self) -> None:
-        _check(self.optimizer in ("lm", "gn", "dogleg"), "graph.optimizer", self.optimizer, "lm, gn or dogleg")
+        _check(self.optimizer in ("lm", "gn", "dogleg", "auto"), "graph.optimizer", self.optimizer,
+               "lm, gn, dogleg or auto")
         _check(self.iterations >= 1, "graph.iterations", self.iterations, ">= 1")
         _check(0.0 < self.robust_reject_scale < 1.0, "graph.robust_reject_scale", self.robust_reject_scale,
                "in (0, 1)")
@@ -390,15 +440,51 @@ class GridParams:
     range_max: float = _p(
         5.0, "Use laser returns up to this range, and clear free space up to it along beams with no "
         "return (0 = the scan's range_max; RTAB-Map's Grid/RangeMax default: farther returns are "
-        "noisier and cost ray casting time)", "m")
+        "noisier and cost ray casting time); depth grid: depth points up to this depth (RTAB-Map's Grid/RangeMax, "
+        "for both)", "m")
     cloud_voxel_size: float = _p(0.05, "Voxel size of the assembled RGB-D point cloud", "m")
     cloud_decimation: int = _p(4, "Use every n-th depth pixel in each direction for the point cloud", "px")
+    sensor: str = _p(
+        "auto", "What the occupancy grid is made from (RTAB-Map's Grid/Sensor: 0 laser, 1 depth, 2 both; "
+        "Grid/FromDepth): laser (the nodes' laser scans), depth (the points of their depth images), both, or "
+        "auto (each node's laser scan when it has one, else its depth image: a laser robot's map is its "
+        "laser's, a camera-only map its depth images'; RTAB-Map's own default is depth)")
+    depth_decimation: int = _p(
+        4, "Depth grid: use every n-th depth pixel in each direction (RTAB-Map's Grid/DepthDecimation)", "px")
+    max_ground_height: float = _p(
+        0.0, "Depth grid: points at or below this height (z in the map frame) are ground, free cells; above "
+        "it, obstacles (RTAB-Map's Grid/MaxGroundHeight; 0 = grid.resolution, as RTAB-Map without its normals "
+        "segmentation, which this grid does not do). Heights are map-frame z (RTAB-Map's "
+        "Grid/MapFrameProjection): the map frame is the root node's odometry frame, whose origin a wheeled "
+        "robot's base starts on the floor at, and a recording with odometry in a room frame (motion capture, "
+        "tum2bag) has its floor at 0", "m")
+    min_ground_height: float = _p(
+        0.0, "Depth grid: points below this height are dropped (noise under the floor; RTAB-Map's "
+        "Grid/MinGroundHeight; 0 = no limit)", "m")
+    max_obstacle_height: float = _p(
+        0.0, "Depth grid: points above this height are dropped (a ceiling, a table top the robot passes under; "
+        "RTAB-Map's Grid/MaxObstacleHeight; 0 = no limit)", "m")
 
     def __post_init__(self) -> None:
         _check(self.resolution > 0, "grid.resolution", self.resolution, "> 0")
         _check(self.range_max >= 0, "grid.range_max", self.range_max, ">= 0")
+        _check(self.sensor in GRID_SENSORS, "grid.sensor", self.sensor, " or ".join(GRID_SENSORS))
+        _check(self.depth_decimation >= 1, "grid.depth_decimation", self.depth_decimation, ">= 1")
+        _check(self.max_ground_height >= 0, "grid.max_ground_height", self.max_ground_height, ">= 0")
+        _check(self.max_obstacle_height == 0 or self.max_obstacle_height > self.ground_height,
+               "grid.max_obstacle_height", self.max_obstacle_height,
+               f"0 (no limit) or above the ground height {self.ground_height} m")
+        _check(self.min_ground_height == 0 or self.min_ground_height < self.ground_height,
+               "grid.min_ground_height", self.min_ground_height,
+               f"0 (no limit) or below the ground height {self.ground_height} m")
         _check(self.cloud_voxel_size > 0, "grid.cloud_voxel_size", self.cloud_voxel_size, "> 0")
         _check(self.cloud_decimation >= 1, "grid.cloud_decimation", self.cloud_decimation, ">= 1")
+
+    @property
+    def ground_height(self) -> float:
+        """Height (m, map-frame z) up to which depth points are ground: max_ground_height, or the
+        cell size when it is 0 (RTAB-Map's passthrough segmentation)."""
+        return self.max_ground_height if self.max_ground_height > 0 else self.resolution
 
 
 @dataclass(frozen=True)
@@ -618,6 +704,13 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Vis/MinInliers": ("registration.min_inliers", int),
     "Vis/InlierDistance": ("registration.inlier_distance", float),
     "Vis/Iterations": ("registration.ransac_iterations", int),
+    "Vis/EstimationType": ("registration.estimation",
+                           lambda v: _ESTIMATION_TYPES.get(int(v), f"Vis/EstimationType {v}")),
+    "Vis/PnPReprojError": ("registration.pnp_reprojection_error", float),
+    "Vis/PnPRefineIterations": ("registration.pnp_refine_iterations", int),
+    "Vis/PnPMaxVariance": ("registration.pnp_max_variance", float),
+    "Vis/BundleAdjustment": ("registration.bundle_adjustment", lambda v: int(v) > 0),
+    "Vis/CorGuessWinSize": ("registration.guided_window", float),
     "Reg/Force3DoF": ("registration.planar", lambda v: _to_bool("Reg/Force3DoF", v)),
     "RGBD/NeighborLinkRefining": ("registration.neighbor_link_refining",
                                   lambda v: _to_bool("RGBD/NeighborLinkRefining", v)),
@@ -629,6 +722,12 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "RGBD/NewMapOdomChangeDistance": ("graph.odom_reset_jump", float),
     "Grid/CellSize": ("grid.resolution", float),
     "Grid/RangeMax": ("grid.range_max", float),
+    "Grid/Sensor": ("grid.sensor", lambda v: _GRID_SENSORS.get(int(v), f"Grid/Sensor {v}")),
+    "Grid/FromDepth": ("grid.sensor", lambda v: "depth" if _to_bool("Grid/FromDepth", v) else "laser"),
+    "Grid/DepthDecimation": ("grid.depth_decimation", int),
+    "Grid/MaxGroundHeight": ("grid.max_ground_height", float),
+    "Grid/MinGroundHeight": ("grid.min_ground_height", float),
+    "Grid/MaxObstacleHeight": ("grid.max_obstacle_height", float),
     "Rtabmap/DetectionRate": ("sync.rate_hz", float),
     # The node's historical names for synchroniser settings (rtabmap_ros uses these).
     "detection_rate": ("sync.rate_hz", float),
@@ -640,6 +739,10 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
 # Kp/NNStrategy values with an equivalent here (RTAB-Map: 0 linear FLANN and 3-4 brute force, exact;
 # 1 FLANN kd-trees; 2 LSH, not available).
 _NN_STRATEGIES = {0: "flat", 1: "kdtree", 3: "flat", 4: "flat"}
+# Vis/EstimationType values with an equivalent here (RTAB-Map: 0 3D->3D, 1 3D->2D PnP, 2 2D->2D epipolar, absent).
+_ESTIMATION_TYPES = {0: "3d", 1: "pnp"}
+# Grid/Sensor values (RTAB-Map: 0 laser scan, 1 depth images, 2 both).
+_GRID_SENSORS = {0: "laser", 1: "depth", 2: "both"}
 # Kp/DetectorStrategy values with an equivalent here (RTAB-Map: 2=ORB, 1=SIFT, 8=GFTT/ORB).
 _DETECTOR_STRATEGIES = {2: "orb", 1: "sift", 8: "gftt_orb"}
 

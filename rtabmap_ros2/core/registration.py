@@ -1,12 +1,24 @@
 """Loop closure verification (2014 §II-A): a rigid transform between two nodes.
 
 The RGB image's visual words get a 3D position from the registered depth image
-(:func:`words_3d`). When a loop closure is detected, RANSAC on the 3D-3D correspondences of words
-that occur exactly once in both signatures estimates the rigid transform (Kabsch / Umeyama
-without scale on 3 samples, every hypothesis scored against all correspondences, all hypotheses
-batched in numpy). The loop closure is accepted with at least ``I`` (``min_inliers``) inliers.
-On a robot moving on a plane the transform is limited to x, y, yaw and refined with 2D
-point-to-line ICP on the laser scans of the two nodes (:func:`icp_2d`).
+(:func:`words_3d`). When a loop closure is detected, the words that occur exactly once in both
+signatures are the correspondences, and the rigid transform is estimated one of two ways
+(``registration.estimation``, RTAB-Map's Vis/EstimationType):
+
+* ``pnp`` (RTAB-Map's default, 1; :func:`register_pnp`; ``auto`` in 6 DoF): the 3D words of one
+  node against the 2D keypoints of the other, RANSAC on the reprojection error in pixels
+  (``cv2.solvePnPRansac``),
+  refined on the inliers of both directions (each node's words, from its own depth, reprojected in
+  the other's image: a two-view bundle adjustment of the pose), optionally with more matches found
+  around where the first estimate projects the keypoints (``guided_window``);
+* ``3d`` (the 2014 paper's, 0; ``auto`` when planar with laser scans, ICP then deciding x, y and
+  yaw): RANSAC on the 3D-3D correspondences (Kabsch / Umeyama without
+  scale on 3 samples, every hypothesis scored against all correspondences, all hypotheses batched
+  in numpy), refit by reweighted least squares.
+
+The loop closure is accepted with at least ``I`` (``min_inliers``) inliers. On a robot moving on a
+plane the transform is limited to x, y, yaw and refined with 2D point-to-line ICP on the laser
+scans of the two nodes (:func:`icp_2d`).
 
 Frames: a transform ``T_from_to`` maps points of the *to* node's base frame into the *from*
 node's base frame (``from_points ≈ T_from_to @ to_points``); it equals
@@ -18,6 +30,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import scipy.linalg
 from scipy.spatial import cKDTree
@@ -44,6 +57,37 @@ IRLS_CONVERGENCE = 1e-6  # m and rad
 # so a lucky near-zero residual cannot make one link dominate the whole graph.
 MIN_TRANSLATION_VARIANCE = 1e-4  # m^2
 MIN_ROTATION_VARIANCE = 1e-4  # rad^2
+# PnP (RTAB-Map's util3d::estimateMotion3DTo2D): solvePnPRansac's confidence (RTAB-Map's), and the
+# fewest 2D-3D pairs it is given or a refinement is fitted to (its minimal sample is 4 pairs, which a
+# pose fits exactly whatever they are).
+PNP_CONFIDENCE = 0.99
+PNP_MIN_PAIRS = 6
+# PnP RANSAC's minimal solver: AP3P (4 pairs a hypothesis) took a third to a half of the time of
+# RTAB-Map's default iterative solver (Vis/PnPFlags 0) on the loop pairs of bench/bench_registration.py
+# (a scratch comparison), accepting the same pairs but one; the refinement below fits all the inliers.
+PNP_RANSAC_SOLVER = cv2.SOLVEPNP_AP3P
+# PnP refinement: Gauss-Newton steps per refinement iteration (the Huber weights make it converge
+# linearly, ~3x per step), Huber threshold as a ratio of the inlier reprojection error (pixels beyond
+# it weigh less), and the update size at which it stops.
+PNP_GAUSS_NEWTON_STEPS = 5
+PNP_HUBER_RATIO = 0.5
+PNP_CONVERGENCE = 1e-4  # rad and m (0.006 deg, 0.1 mm)
+# Guided matching: a first estimate needs this many inliers before its projections are trusted to
+# look for more matches (a random 2D-3D match reprojects within 2 px with probability ~1e-5 on a
+# 640x480 image, so 8 consistent pairs do not come by chance; a look-alike place is judged at the
+# end by min_inliers like any other).
+GUIDED_MIN_INLIERS = 8
+# Guided matching, binary descriptors (ORB, 256 bits): a match is at most this many bits apart (random
+# pairs are ~128 +- 8 apart, the same corner seen twice mostly under 50) and passes the nearest
+# neighbour ratio test against the next candidate in the window.
+GUIDED_MAX_HAMMING = 64
+GUIDED_NNDR = 0.8
+# Guided matching: the keypoints nearest to a projection that are compared (a 10 px window at GFTT's
+# 7 px minimum distance between corners holds a few).
+GUIDED_CANDIDATES = 4
+# Covariance of a PnP estimate (RTAB-Map's computeVariance of sac_model.h): the variance of a 1-D
+# Gaussian is 2.1981 times the median of its squared samples (the median of chi^2_1 is 0.4549).
+VARIANCE_OF_MEDIAN_SQUARE = 2.1981
 # ICP: neighbours (the point included) fitting the local line (normal) at each target point; 3 gave
 # the smallest mean error on intel-corrected k -> k+5 pairs (bench/bench_registration.py).
 ICP_NORMAL_NEIGHBORS = 3
@@ -302,15 +346,23 @@ def _information(rmse: float, spread: float, planar: bool) -> np.ndarray:
 
 
 def register(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
-             rng: np.random.Generator | None = None) -> Registration:
-    """Rigid transform between two nodes from their 3D visual words (and laser scans).
+             rng: np.random.Generator | None = None,
+             descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> Registration:
+    """Rigid transform between two nodes from their visual words (and laser scans).
 
     Args:
-        from_sig: the from node (e.g. the loop closure hypothesis); its ``points3d`` in its base
-            frame (m), NaN without depth.
-        to_sig: the to node (e.g. the new node).
-        params: RANSAC / ICP settings.
-        rng: random generator for RANSAC (default: seeded with DEFAULT_SEED, reproducible).
+        from_sig: the from node (e.g. the new node); its ``points3d`` in its base frame (m), NaN
+            without depth, its ``keypoints`` (px) and ``camera``.
+        to_sig: the to node (e.g. the loop closure hypothesis).
+        params: estimation (PnP or 3D-3D RANSAC), ICP settings.
+        rng: random generator for the 3D-3D RANSAC (default: seeded with DEFAULT_SEED, reproducible;
+            PnP's RANSAC is OpenCV's, seeded the same on every call).
+        descriptors: ``(from, to)`` descriptors of every keypoint of the two signatures ((N,D) and
+            (M,D), binary uint8), for the PnP's guided matching (``params.guided_window``); None
+            = the shared words only.
+
+    The estimate (``params.estimation``, :func:`uses_pnp`): PnP, or the 3D-3D RANSAC (without a
+    camera model too); with laser scans on both nodes and ``icp_refine``, then 2D ICP.
 
     Returns:
         :class:`Registration` with ``T_from_to`` (``from_points ≈ T_from_to @ to_points``).
@@ -318,6 +370,28 @@ def register(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
     Raises:
         RegistrationError: fewer than ``params.min_inliers`` inliers, or ICP refinement rejected.
     """
+    icp = params.icp_refine and from_sig.scan is not None and to_sig.scan is not None
+    if uses_pnp(params, icp) and from_sig.camera is not None and to_sig.camera is not None:
+        # Loop closure transform by PnP (RTAB-Map's Vis/EstimationType 1).
+        result = register_pnp(from_sig, to_sig, params, descriptors)
+    else:
+        result = _register_3d(from_sig, to_sig, params, rng)
+    if icp:
+        result = _refine_with_icp(from_sig, to_sig, result, params)
+    return result
+
+
+def uses_pnp(params: RegistrationParams, icp_refined: bool) -> bool:
+    """Whether the visual estimate is PnP: ``estimation`` pnp, or auto unless the robot is planar and
+    2D ICP refines the estimate (the 2014 paper's RANSAC on 3D words then ICP)."""
+    if params.estimation == "auto":
+        return not (params.planar and icp_refined)
+    return params.estimation == "pnp"
+
+
+def _register_3d(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
+                 rng: np.random.Generator | None) -> Registration:
+    """The 2014 paper's estimate (Vis/EstimationType 0): RANSAC on 3D-3D word pairs, reweighted refit."""
     rng = np.random.default_rng(DEFAULT_SEED) if rng is None else rng
     p_from, p_to = correspondences(from_sig, to_sig)
     if len(p_from) < max(3, params.min_inliers):
@@ -339,10 +413,352 @@ def register(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
     centred = p_from[mask] - p_from[mask].mean(axis=0)
     spread = float(np.sqrt(np.mean(np.sum(centred ** 2, axis=1))))
     info = _information(rmse, spread, params.planar)
-    result = Registration(T, info, n_inliers, False, rmse)
-    if params.icp_refine and from_sig.scan is not None and to_sig.scan is not None:
-        result = _refine_with_icp(from_sig, to_sig, result, params)
-    return result
+    return Registration(T, info, n_inliers, False, rmse)
+
+
+@dataclass
+class _WordPairs:
+    """Corresponding features of two nodes, K pairs, with both ends' data in their own frames.
+
+    Attributes:
+        i_from, i_to: (K,) int64 feature indices in the from / to signature.
+        uv_from, uv_to: (K,2) float64 keypoints (px) in the from / to image.
+        p_from, p_to: (K,3) float64 word positions (m) in the from / to base frame; NaN rows
+            without depth.
+    """
+
+    i_from: np.ndarray
+    i_to: np.ndarray
+    uv_from: np.ndarray
+    uv_to: np.ndarray
+    p_from: np.ndarray
+    p_to: np.ndarray
+
+    @classmethod
+    def of(cls, from_sig: Signature, to_sig: Signature, i_from: np.ndarray, i_to: np.ndarray) -> "_WordPairs":
+        return cls(i_from, i_to,
+                   np.asarray(from_sig.keypoints, dtype=np.float64).reshape(-1, 2)[i_from],
+                   np.asarray(to_sig.keypoints, dtype=np.float64).reshape(-1, 2)[i_to],
+                   np.asarray(from_sig.points3d, dtype=np.float64).reshape(-1, 3)[i_from],
+                   np.asarray(to_sig.points3d, dtype=np.float64).reshape(-1, 3)[i_to])
+
+    def __len__(self) -> int:
+        return len(self.i_from)
+
+    @property
+    def forward(self) -> np.ndarray:
+        """(K,) bool: pairs whose from end has depth (from word in the to image)."""
+        return np.isfinite(self.p_from).all(axis=1)
+
+    @property
+    def backward(self) -> np.ndarray:
+        """(K,) bool: pairs whose to end has depth (to word in the from image)."""
+        return np.isfinite(self.p_to).all(axis=1)
+
+
+def register_pnp(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
+                 descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> Registration:
+    """Loop closure transform by PnP (RTAB-Map's Vis/EstimationType 1, util3d::estimateMotion3DTo2D).
+
+    1. RANSAC PnP (``cv2.solvePnPRansac``, ``params.pnp_reprojection_error`` px) of the 3D words of
+       the node with more of them with depth against the 2D keypoints of the other;
+    2. refinement (``pnp_refine_iterations``): the inliers re-selected at the current estimate, in
+       both directions when ``bundle_adjustment`` (each node's words from its own depth in the other
+       image), and the pose fitted to their reprojection errors (Gauss-Newton, Huber weights);
+    3. with ``guided_window`` and descriptors: every keypoint with depth matched in a window around
+       its projection, then 1-2 again on these matches;
+    4. the inlier count against ``min_inliers``; the information matrix from the inliers' 3D
+       residuals (both nodes' depths, RTAB-Map's PnP variance) or their reprojection errors, its
+       translation variance against ``pnp_max_variance``.
+
+    Args and returns: see :func:`register` (``descriptors`` index like the signatures' keypoints).
+
+    Raises:
+        RegistrationError: too few pairs, RANSAC found no pose, fewer than ``min_inliers`` inliers,
+            or a translation variance above ``pnp_max_variance``.
+    """
+    cam_from, cam_to = from_sig.camera, to_sig.camera
+    i_from, i_to = word_pairs(from_sig, to_sig)
+    pairs = _WordPairs.of(from_sig, to_sig, i_from, i_to)
+    T, inliers = _pnp_estimate(pairs, cam_from, cam_to, params, f"nodes {from_sig.id} -> {to_sig.id}")
+    if params.guided_window > 0 and descriptors is not None and int(inliers.sum()) >= GUIDED_MIN_INLIERS:
+        # Guided matching (RTAB-Map's Vis/CorGuessWinSize, here with the first estimate as the guess).
+        guided = _guided_pairs(from_sig, to_sig, descriptors, T, pairs, params.guided_window)
+        if len(guided) > int(inliers.sum()):
+            T_guided, inliers_guided = _refine_pnp(T, guided, cam_from, cam_to, params)
+            if inliers_guided.sum() > inliers.sum():
+                pairs, T, inliers = guided, T_guided, inliers_guided
+    n_inliers = int(inliers.sum())
+    if n_inliers < params.min_inliers:
+        raise RegistrationError(
+            f"nodes {from_sig.id} -> {to_sig.id}: {n_inliers} PnP inliers < min_inliers={params.min_inliers} "
+            f"({len(pairs)} word pairs, {int(pairs.forward.sum())} with depth in {from_sig.id}, "
+            f"{int(pairs.backward.sum())} in {to_sig.id}): loop closure rejected")
+    info, rmse = _pnp_information(T, pairs, inliers, cam_from, cam_to, params)
+    variance = 1.0 / info[0, 0]
+    if params.pnp_max_variance > 0 and variance > params.pnp_max_variance:
+        # RTAB-Map's Vis/PnPMaxVariance, on the 6-DoF estimate (before Reg/Force3DoF's projection, as
+        # there): the words still disagree by centimetres after the fit (motion blur, rolling
+        # shutter); the graph check would let such a loose link in, so it is rejected here.
+        raise RegistrationError(
+            f"nodes {from_sig.id} -> {to_sig.id}: PnP translation variance {variance:.4f} m^2 ({n_inliers} "
+            f"inliers) > pnp_max_variance={params.pnp_max_variance}: loop closure rejected")
+    if params.planar:
+        T = transforms.project_planar(T)
+        info, rmse = _pnp_information(T, pairs, inliers, cam_from, cam_to, params)
+    return Registration(T, info, n_inliers, False, rmse)
+
+
+def _pnp_estimate(pairs: _WordPairs, cam_from: CameraModel, cam_to: CameraModel, params: RegistrationParams,
+                  what: str) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC PnP then refinement: ``(T_from_to, (K,) bool inliers)``, or RegistrationError."""
+    forward, backward = pairs.forward, pairs.backward
+    # The direction with more 3D words (RTAB-Map estimates from -> to, Vis/ForwardEstOnly).
+    use_forward = forward.sum() >= backward.sum()
+    usable = forward if use_forward else backward
+    if usable.sum() < PNP_MIN_PAIRS:
+        raise RegistrationError(
+            f"{what}: {int(usable.sum())} word pairs with depth (of {len(pairs)} shared words) < "
+            f"{PNP_MIN_PAIRS}: loop closure rejected")
+    if use_forward:
+        T_camera_points = pnp_ransac(pairs.p_from[usable], pairs.uv_to[usable], cam_to,
+                                     params.pnp_reprojection_error, params.ransac_iterations)
+        T = None if T_camera_points is None else transforms.inverse(cam_to.T_base_camera @ T_camera_points)
+    else:
+        T_camera_points = pnp_ransac(pairs.p_to[usable], pairs.uv_from[usable], cam_from,
+                                     params.pnp_reprojection_error, params.ransac_iterations)
+        T = None if T_camera_points is None else cam_from.T_base_camera @ T_camera_points
+    if T is None:
+        raise RegistrationError(f"{what}: PnP RANSAC found no pose from {int(usable.sum())} word pairs: "
+                                "loop closure rejected")
+    return _refine_pnp(T, pairs, cam_from, cam_to, params)
+
+
+def pnp_ransac(points: np.ndarray, pixels: np.ndarray, camera: CameraModel, reprojection_error: float,
+               iterations: int) -> np.ndarray | None:
+    """RANSAC PnP: the pose of ``camera`` seeing ``points`` at ``pixels``.
+
+    Args:
+        points: (N,3) points (m) in some frame F, N >= 4.
+        pixels: (N,2) their keypoints (px) in the camera's image.
+        camera: pinhole model of the image.
+        reprojection_error: inlier threshold (px).
+        iterations: RANSAC hypotheses.
+
+    Returns:
+        ``T_camera_F`` (4x4, F -> the camera's optical frame), or None when RANSAC found none.
+        (OpenCV's RANSAC seeds its generator on every call: the same pairs give the same pose.)
+    """
+    K = _intrinsics(camera)
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(pixels, dtype=np.float64), K, None,
+        iterationsCount=int(iterations), reprojectionError=float(reprojection_error), confidence=PNP_CONFIDENCE,
+        flags=PNP_RANSAC_SOLVER)
+    if not ok or inliers is None or not np.all(np.isfinite(tvec)):
+        return None
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.ravel()
+    return T
+
+
+def _intrinsics(camera: CameraModel) -> np.ndarray:
+    """3x3 intrinsic matrix K of a pinhole camera."""
+    return np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+
+
+def _reprojection(T_camera_frame: np.ndarray, points: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N,3, m) of a frame in the camera's image: ``(pixels (N,2), points in the optical
+    frame (N,3))``; NaN pixels behind the camera."""
+    X = points @ T_camera_frame[:3, :3].T + T_camera_frame[:3, 3]
+    return camera.project(X), X
+
+
+def _refine_pnp(T: np.ndarray, pairs: _WordPairs, cam_from: CameraModel, cam_to: CameraModel,
+                params: RegistrationParams) -> tuple[np.ndarray, np.ndarray]:
+    """Refinement of ``T_from_to`` (RTAB-Map's Vis/PnPRefineIterations, with Vis/BundleAdjustment the
+    errors of both directions): Gauss-Newton steps on the Huber-weighted reprojection errors of the
+    inliers, the inliers re-selected at the current estimate before each step, until the selection
+    stops changing and the step is below PNP_CONVERGENCE (at most ``pnp_refine_iterations`` x
+    PNP_GAUSS_NEWTON_STEPS steps). The update is on the right, ``T exp(xi)``, xi = (rotation vector,
+    translation) in the to node's base frame.
+
+    Returns:
+        ``(T_from_to, (K,) bool)``: a pair is an inlier when a word of it with depth reprojects within
+        ``pnp_reprojection_error`` of its keypoint in the other image.
+    """
+    threshold = params.pnp_reprojection_error
+    huber_px = PNP_HUBER_RATIO * threshold
+    selected = None
+    for _ in range(params.pnp_refine_iterations * PNP_GAUSS_NEWTON_STEPS):
+        r, J = _reprojection_system(T, pairs, cam_from, cam_to, params.bundle_adjustment)
+        errors = np.hypot(r[:, 0], r[:, 1])  # (2K,): forward pairs, then backward pairs
+        selection = errors < threshold  # NaN (no depth, behind the camera) compares False
+        if selection.sum() < PNP_MIN_PAIRS:
+            break
+        r, J, errors = r[selection], J[selection], errors[selection]
+        w = np.where(errors <= huber_px, 1.0, huber_px / np.maximum(errors, 1e-12))
+        H = np.einsum("n,nki,nkj->ij", w, J, J)
+        try:
+            xi = np.linalg.solve(H, -np.einsum("n,nki,nk->i", w, J, r))
+        except np.linalg.LinAlgError:
+            break
+        step = np.eye(4)
+        step[:3, :3] = cv2.Rodrigues(xi[:3])[0]
+        step[:3, 3] = xi[3:]
+        T = T @ step
+        unchanged = selected is not None and np.array_equal(selection, selected)
+        selected = selection
+        if unchanged and np.linalg.norm(xi) < PNP_CONVERGENCE:
+            break
+    r, _ = _reprojection_system(T, pairs, cam_from, cam_to, params.bundle_adjustment)
+    with np.errstate(invalid="ignore"):
+        inlier = np.hypot(r[:, 0], r[:, 1]) < threshold
+    return T, inlier[:len(pairs)] | inlier[len(pairs):]
+
+
+def _reprojection_system(T: np.ndarray, pairs: _WordPairs, cam_from: CameraModel, cam_to: CameraModel,
+                         backward: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Reprojection residuals (2K,2) (px) of the K pairs at ``T = T_from_to`` and their (2K,2,6)
+    Jacobians in xi (``T exp(xi)``): rows 0..K-1 forward (the from word, from its depth, in the to
+    image), rows K..2K-1 backward (the to word in the from image); NaN rows where the word has no
+    depth, lands behind the camera, or (``backward`` False) for every backward row."""
+    T_inv = transforms.inverse(T)
+    # Forward: X = C_to^-1 exp(-xi) q with q = T^-1 p_from (the from words in the to base frame).
+    q = pairs.p_from @ T_inv[:3, :3].T + T_inv[:3, 3]
+    r_f, J_f = _reprojection_jacobian(q, transforms.inverse(cam_to.T_base_camera), pairs.uv_to, cam_to, -1.0)
+    if not backward:
+        return (np.concatenate([r_f, np.full_like(r_f, np.nan)]),
+                np.concatenate([J_f, np.zeros_like(J_f)]))
+    # Backward: X = C_from^-1 T exp(xi) p_to.
+    r_b, J_b = _reprojection_jacobian(pairs.p_to, transforms.inverse(cam_from.T_base_camera) @ T, pairs.uv_from,
+                                      cam_from, 1.0)
+    return np.concatenate([r_f, r_b]), np.concatenate([J_f, J_b])
+
+
+def _reprojection_jacobian(points: np.ndarray, T_camera_points: np.ndarray, pixels: np.ndarray, camera: CameraModel,
+                           sign: float) -> tuple[np.ndarray, np.ndarray]:
+    """Reprojection residuals (n,2) (px) of (n,3) points moved into the camera by
+    ``T_camera_points @ exp(sign xi)``, and their (n,2,6) Jacobian in xi = (rotation vector,
+    translation) of the points' frame; NaN residuals for points without depth or behind the camera."""
+    R, t = T_camera_points[:3, :3], T_camera_points[:3, 3]
+    X = points @ R.T + t
+    x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.where(z > 0, z, np.nan)
+        r = np.stack([camera.fx * x / z + camera.cx - pixels[:, 0], camera.fy * y / z + camera.cy - pixels[:, 1]],
+                     axis=1)
+        # d pixel / d X (2x3 per point), times R: the derivative along the points' frame axes.
+        d_u = np.stack([camera.fx / z, np.zeros_like(z), -camera.fx * x / z ** 2], axis=1) @ R
+        d_v = np.stack([np.zeros_like(z), camera.fy / z, -camera.fy * y / z ** 2], axis=1) @ R
+    J = np.empty((len(X), 2, 6))
+    # d(R (p + omega x p + t))/d omega = -R [p]x: row . (omega x p) = omega . (p x row).
+    J[:, 0, :3], J[:, 1, :3] = sign * _cross(points, d_u), sign * _cross(points, d_v)
+    J[:, 0, 3:], J[:, 1, 3:] = sign * d_u, sign * d_v
+    return r, J
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of (n,3) arrays (np.cross costs more than the arithmetic at this size)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
+def _guided_pairs(from_sig: Signature, to_sig: Signature, descriptors: tuple[np.ndarray, np.ndarray],
+                  T: np.ndarray, word: _WordPairs, window_px: float) -> _WordPairs:
+    """Word pairs plus the matches found around the projections of ``T = T_from_to``.
+
+    Every keypoint with depth of one node is projected into the other image; among the
+    GUIDED_CANDIDATES keypoints there nearest to the projection within ``window_px``, the nearest
+    descriptor is its match if at most GUIDED_MAX_HAMMING bits away and GUIDED_NNDR times nearer
+    than the next one (binary descriptors only: float ones return the word pairs). A keypoint keeps
+    its word pair, else its nearest match; each keypoint is used once.
+    """
+    desc = tuple(np.asarray(d) for d in descriptors)
+    if any(d.dtype != np.uint8 for d in desc):
+        return word
+    kp = (np.asarray(from_sig.keypoints, dtype=np.float64).reshape(-1, 2),
+          np.asarray(to_sig.keypoints, dtype=np.float64).reshape(-1, 2))
+    points = (np.asarray(from_sig.points3d, dtype=np.float64).reshape(-1, 3),
+              np.asarray(to_sig.points3d, dtype=np.float64).reshape(-1, 3))
+    cameras = (from_sig.camera, to_sig.camera)
+    # T_camera(other)_base(mine): the from words into the to camera, the to words into the from camera.
+    T_into = (transforms.inverse(to_sig.camera.T_base_camera) @ transforms.inverse(T),
+              transforms.inverse(from_sig.camera.T_base_camera) @ T)
+    found = []  # (bits apart, from index, to index)
+    for mine, other in ((0, 1), (1, 0)):
+        with_depth = np.flatnonzero(np.isfinite(points[mine]).all(axis=1))
+        n_other = len(kp[other])
+        if not len(with_depth) or n_other < 2:
+            continue
+        projected, _ = _reprojection(T_into[mine], points[mine][with_depth], cameras[other])
+        seen = np.isfinite(projected).all(axis=1)
+        with_depth, projected = with_depth[seen], projected[seen]
+        _, candidates = cKDTree(kp[other]).query(projected, k=min(GUIDED_CANDIDATES, n_other),
+                                                 distance_upper_bound=window_px)
+        in_window = candidates < n_other  # a missing neighbour has index n_other
+        xor = np.bitwise_xor(desc[mine][with_depth][:, None, :], desc[other][np.minimum(candidates, n_other - 1)])
+        bits = np.where(in_window, np.unpackbits(xor, axis=2).sum(axis=2), np.iinfo(np.int32).max)
+        order = np.argsort(bits, axis=1, kind="stable")
+        best = np.take_along_axis(bits, order[:, :1], axis=1)[:, 0]
+        second = np.take_along_axis(bits, order[:, 1:2], axis=1)[:, 0]
+        keep = (best <= GUIDED_MAX_HAMMING) & (best < GUIDED_NNDR * second)
+        matched = np.take_along_axis(candidates, order[:, :1], axis=1)[:, 0][keep]
+        ends = (with_depth[keep], matched) if mine == 0 else (matched, with_depth[keep])
+        found.extend(zip(best[keep].tolist(), ends[0].tolist(), ends[1].tolist()))
+    # Each keypoint once: the word pairs first, then the guided matches nearest first.
+    used_from, used_to = set(word.i_from.tolist()), set(word.i_to.tolist())
+    i_from, i_to = list(word.i_from.tolist()), list(word.i_to.tolist())
+    for _, a, b in sorted(found):
+        if a in used_from or b in used_to:
+            continue
+        used_from.add(a)
+        used_to.add(b)
+        i_from.append(a)
+        i_to.append(b)
+    return _WordPairs.of(from_sig, to_sig, np.asarray(i_from, np.int64), np.asarray(i_to, np.int64))
+
+
+def _pnp_information(T: np.ndarray, pairs: _WordPairs, inliers: np.ndarray, cam_from: CameraModel,
+                     cam_to: CameraModel, params: RegistrationParams) -> tuple[np.ndarray, float]:
+    """6x6 information of a PnP estimate and the inliers' RMS 3D residual (m).
+
+    As RTAB-Map's PnP variance (util3d::estimateMotion3DTo2D, PCL's computeVariance): over the inliers
+    with depth in both nodes, translation variance = VARIANCE_OF_MEDIAN_SQUARE x the median squared
+    distance between the from word and the to word moved by ``T`` (both nodes' depth noise, and
+    whatever the pose gets wrong, in metres), rotation variance = the same of the squared angle
+    between the two seen from the from camera. Inliers with depth on one side only: the reprojection
+    errors instead (px over the focal length as an angle, times the median depth as a distance).
+    The variances have the floors MIN_TRANSLATION_VARIANCE / MIN_ROTATION_VARIANCE.
+    """
+    both = inliers & pairs.forward & pairs.backward
+    if both.sum() >= PNP_MIN_PAIRS:
+        moved = pairs.p_to[both] @ T[:3, :3].T + T[:3, 3]
+        residuals = np.linalg.norm(pairs.p_from[both] - moved, axis=1)
+        centre = cam_from.T_base_camera[:3, 3]
+        a, b = pairs.p_from[both] - centre, moved - centre
+        cos = np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+        angles = np.arccos(np.clip(cos, -1.0, 1.0))
+        var_t = VARIANCE_OF_MEDIAN_SQUARE * float(np.median(residuals ** 2))
+        var_r = VARIANCE_OF_MEDIAN_SQUARE * float(np.median(angles ** 2))
+        rmse = float(np.sqrt(np.mean(residuals ** 2)))
+    else:
+        r, _ = _reprojection_system(T, pairs, cam_from, cam_to, backward=True)
+        errors = np.hypot(r[:, 0], r[:, 1]).reshape(2, -1)
+        errors = np.fmin(errors[0], errors[1])[inliers]  # the direction(s) with depth; fmin skips NaN
+        focal = 0.5 * (cam_from.fx + cam_from.fy)
+        depth = np.concatenate([pairs.p_from[inliers & pairs.forward], pairs.p_to[inliers & pairs.backward]])
+        range_m = float(np.median(np.linalg.norm(depth, axis=1)))
+        var_r = VARIANCE_OF_MEDIAN_SQUARE * float(np.median((errors / focal) ** 2))
+        var_t = var_r * range_m ** 2
+        rmse = float(np.sqrt(np.mean((errors / focal * range_m) ** 2)))
+    var_t = max(var_t, MIN_TRANSLATION_VARIANCE)
+    var_r = max(var_r, MIN_ROTATION_VARIANCE)
+    info = np.diag([1 / var_t] * 3 + [1 / var_r] * 3)
+    if params.planar:
+        info[2, 2] = 1 / MIN_TRANSLATION_VARIANCE
+        info[3, 3] = info[4, 4] = 1 / MIN_ROTATION_VARIANCE
+    return info, rmse
 
 
 def _refine_with_icp(from_sig: Signature, to_sig: Signature, visual: Registration,
@@ -575,5 +991,5 @@ def refine_neighbor_link(scan_map: np.ndarray, new_scan: LaserScan, T_odom: np.n
     return T, info
 
 
-__all__ = ["Registration", "assemble_scan_map", "correspondences", "icp_2d", "kabsch", "ransac_rigid",
-           "refine_neighbor_link", "register", "words_3d"]
+__all__ = ["Registration", "assemble_scan_map", "correspondences", "icp_2d", "kabsch", "pnp_ransac", "ransac_rigid",
+           "refine_neighbor_link", "register", "register_pnp", "uses_pnp", "words_3d"]

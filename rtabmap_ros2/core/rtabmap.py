@@ -42,7 +42,7 @@ from rtabmap_ros2.core.optimizer import load_backend, release
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.registration import words_3d
 from rtabmap_ros2.core.sensor import SensorFrame
-from rtabmap_ros2.core.sessions import REQUESTED, Sessions, odometry_information
+from rtabmap_ros2.core.sessions import REQUESTED, PlanarOdometryCheck, Sessions, odometry_information
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.statistics import Statistics, Stopwatch
 from rtabmap_ros2.core.wm_budget import WorkingMemoryBudget
@@ -81,6 +81,7 @@ class Rtabmap:
         # The previous frame's highest hypothesis value (Rtabmap/LoopRatio), 0 after a frame without one.
         self._previous_hypothesis_value = 0.0
         self.sessions = Sessions(self.params.graph)
+        self.planarity = PlanarOdometryCheck()
         self.local = LocalMapper(self.params, self.memory)
         self.validator = LoopValidator(self.params, self.memory, self.bayes, self.local)
         self._wm_budget = WorkingMemoryBudget(self.params.memory)
@@ -231,9 +232,17 @@ class Rtabmap:
             release(link for node in nodes for link in self.memory.graph.stored_links_of(node))
 
     def _check_planar(self, frame: SensorFrame) -> None:
-        """Planar (3 DoF) mode: the parameter, with a laser (2014 §III: the robot is on a plane)."""
-        if self.local.planar is None and frame.T_odom_base is not None:
-            self.local.planar = bool(self.params.registration.planar and frame.scan is not None)
+        """Planar (3 DoF) mode: the parameter as given, whatever the sensors (RTAB-Map's
+        Reg/Force3DoF; 2014 §III: the robot is on a plane); warned about when the odometry is not
+        planar (sessions.PlanarOdometryCheck)."""
+        if frame.T_odom_base is None:
+            return
+        if self.local.planar is None:
+            self.local.planar = bool(self.params.registration.planar)
+        if self.local.planar:
+            warning = self.planarity.update(self.memory.map_id, frame.T_odom_base)
+            if warning:
+                log.warning("%s", warning)
 
     def _map(self, frame: SensorFrame, features: Features, stats: Statistics, watch: Stopwatch,
              location_id: int | None) -> Hypothesis:

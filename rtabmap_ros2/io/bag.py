@@ -65,6 +65,8 @@ DEFAULT_T_BASE_CAMERA = np.array([
     [0.0, 0.0, 0.0, 1.0],
 ])
 DEFAULT_T_BASE_CAMERA.setflags(write=False)
+# write_bag's depth_format -> Image encoding of the raw depth topic.
+DEPTH_ENCODINGS = {"raw": "16UC1", "float": "32FC1"}
 # Base -> laser used when neither the caller nor /tf_static gives one: the laser at the base origin.
 DEFAULT_T_BASE_LASER = np.eye(4)
 DEFAULT_T_BASE_LASER.setflags(write=False)
@@ -352,9 +354,19 @@ def pixels_of_rgb(rgb: np.ndarray, encoding: str) -> np.ndarray:
     return out.astype(np.uint16) * 257 if wide else out
 
 
-def depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str = "camera_optical", ts=None):
-    """sensor_msgs/Image 16UC1 (mm) of an HxW float32 depth (m; NaN/0 -> 0, clipped at 65.535 m)."""
+def depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str = "camera_optical", ts=None,
+                 encoding: str = "16UC1"):
+    """sensor_msgs/Image of an HxW float32 depth (m): 16UC1 millimetres (NaN/0 -> 0, clipped at
+    65.535 m) or 32FC1 metres (invalid -> NaN, as drivers publish it)."""
     ts = ts or typestore()
+    if encoding == "32FC1":
+        d = np.asarray(depth_m, dtype=np.float32).copy()
+        d[~(d > 0)] = np.nan
+        h, w = d.shape
+        return _make(ts, IMAGE_TYPE, header=_header(stamp_ns, frame_id, ts), height=h, width=w, encoding="32FC1",
+                     is_bigendian=0, step=w * 4, data=d.astype("<f4").reshape(-1).view(np.uint8))
+    if encoding != "16UC1":
+        raise BagError(f"depth encoding {encoding!r} cannot be written: 16UC1 (mm) or 32FC1 (m)")
     mm = depth_to_mm(depth_m)
     h, w = mm.shape
     return _make(ts, IMAGE_TYPE, header=_header(stamp_ns, frame_id, ts), height=h, width=w, encoding="16UC1",
@@ -463,14 +475,17 @@ def compressed_depth_from_msg(msg) -> np.ndarray:
     raise SensorDataError(f"unsupported compressedDepth encoding {enc!r} in format {msg.format!r}", "encoding")
 
 
-def camera_info_to_msg(camera: CameraModel, stamp_ns: int, frame_id: str = "camera_optical", ts=None):
-    """sensor_msgs/CameraInfo (K, P, R = I, D = zeros, plumb_bob) of a :class:`CameraModel`."""
+def camera_info_to_msg(camera: CameraModel, stamp_ns: int, frame_id: str = "camera_optical", ts=None,
+                       distortion: Optional[Iterable[float]] = None):
+    """sensor_msgs/CameraInfo (K, P = K, R = I, plumb_bob) of a :class:`CameraModel`; ``D`` the
+    plumb_bob coefficients (k1 k2 p1 p2 k3) of images as recorded (not rectified), zeros by default."""
     ts = ts or typestore()
+    d = np.zeros(5) if distortion is None else np.asarray(list(distortion), dtype=np.float64)
     K = np.array([camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0])
     P = np.array([camera.fx, 0.0, camera.cx, 0.0, 0.0, camera.fy, camera.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
     roi = _make(ts, "sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     return _make(ts, CAMERA_INFO_TYPE, header=_header(stamp_ns, frame_id, ts), height=camera.height,
-                 width=camera.width, distortion_model="plumb_bob", d=np.zeros(5), k=K, r=np.eye(3).reshape(9),
+                 width=camera.width, distortion_model="plumb_bob", d=d, k=K, r=np.eye(3).reshape(9),
                  p=P, binning_x=0, binning_y=0, roi=roi)
 
 
@@ -607,6 +622,37 @@ class _TfTree:
         return transforms.inverse(up_target[common]) @ up_source[common]
 
 
+@dataclass(frozen=True)
+class Mount:
+    """Where a sensor's mount (``base_frame`` -> ``sensor_frame``) came from: ``kind`` is
+    ``tf_static`` (the bag's /tf_static links the frames), ``same_frame`` (the sensor's frame is the
+    base: identity), ``argument`` (given to BagDataset) or ``fallback`` (none of these: the fallback
+    transform, e.g. ``map``'s ``base_to_camera``)."""
+
+    kind: str
+    base_frame: str
+    sensor_frame: str
+
+
+@dataclass(frozen=True)
+class BagRead:
+    """What the last full iteration of a bag did.
+
+    Attributes:
+        synchronised: complete synchronised sets, before the detection rate's limit.
+        rate_limited: sets dropped by the detection rate (``sync.rate_hz``).
+        frames: sets turned into frames (after the rate limit, bad messages skipped).
+        bad: sets skipped for a bad message (each logged as a warning).
+        dropped: the synchroniser's other drops (``queue_full``, ``late``, ``unmatched``).
+    """
+
+    synchronised: int
+    rate_limited: int
+    frames: int
+    bad: int
+    dropped: dict[str, int]
+
+
 @dataclass
 class _Raw:
     """A deserialised message waiting in the synchroniser (converted only if its set is emitted)."""
@@ -655,6 +701,10 @@ class BagDataset:
         self._fallback_laser = DEFAULT_T_BASE_LASER if fallback_T_base_laser is None else np.asarray(
             fallback_T_base_laser, dtype=np.float64)
         self._len: Optional[int] = None
+        # Filled while iterating: where each sensor's mount came from (first frame), what the
+        # last full iteration did.
+        self.mounts: dict[str, Mount] = {}
+        self.last_read: Optional[BagRead] = None
         reader = _open_reader(self.path)
         try:
             available = {name: info.msgtype for name, info in reader.topics.items()}
@@ -717,15 +767,18 @@ class BagDataset:
             except Exception as exc:
                 logger.warning("bag %s: skipping an unreadable /tf_static message: %s", self.path, exc)
 
-    def _sensor_transform(self, frame_id: str, explicit: Optional[np.ndarray], default: np.ndarray,
+    def _sensor_transform(self, sensor: str, frame_id: str, explicit: Optional[np.ndarray], default: np.ndarray,
                           base_frame: str) -> np.ndarray:
-        if explicit is not None:
-            return explicit
-        if frame_id:
+        """base -> sensor transform of ``sensor`` ("camera", "laser"); where it came from is kept in
+        :attr:`mounts` (the first frame's)."""
+        T, kind = explicit, "argument"
+        if T is None and frame_id:
             T = self.tf.lookup(base_frame, frame_id)
-            if T is not None:
-                return T
-        return np.array(default)
+            kind = "same_frame" if frame_id.lstrip("/") == base_frame.lstrip("/") else "tf_static"
+        if T is None:
+            T, kind = np.array(default), "fallback"
+        self.mounts.setdefault(sensor, Mount(kind, base_frame, frame_id))
+        return T
 
     def __len__(self) -> int:
         """Frames in the bag: synchronised sets, counted without decoding their images (a set
@@ -748,13 +801,17 @@ class BagDataset:
 
     def _frames(self, reader) -> Iterator[SensorFrame]:
         state = {"camera_info": None, "base_frame": self._base_frame}
-        count = 0
+        count = sets = 0
         for synced in self._synced(reader, state):
+            sets += 1
             frame = self._frame(synced, state)
             if frame is not None:
                 count += 1
                 yield frame
         self._len = count
+        dropped = dict(state.get("dropped", {}))
+        rate_limited = dropped.pop("rate_limited", 0)
+        self.last_read = BagRead(sets + rate_limited, rate_limited, count, sets - count, dropped)
 
     def _synced(self, reader, state: dict) -> Iterator[SyncedSet]:
         """The bag's synchronised message sets in order (camera_info kept in ``state``)."""
@@ -783,6 +840,7 @@ class BagDataset:
             yield from synchronizer.add(stream, stamp_ns, item)
         if synchronizer is not None:
             yield from synchronizer.flush()
+            state["dropped"] = dict(synchronizer.dropped)
             if any(synchronizer.dropped.values()) or synchronizer.resets:
                 logger.debug("bag %s: synchroniser dropped %s, resets %d", self.path,
                              synchronizer.dropped, synchronizer.resets)
@@ -802,8 +860,8 @@ class BagDataset:
             scan = synced.values.get("scan")
             if scan is not None:
                 current = scan
-                T = self._sensor_transform(scan.msg.header.frame_id, self._T_base_laser, self._fallback_laser,
-                                           base_frame)
+                T = self._sensor_transform("laser", scan.msg.header.frame_id, self._T_base_laser,
+                                           self._fallback_laser, base_frame)
                 frame.scan = scan_from_msg(scan.msg, T)
             rgb = synced.values.get("rgb")
             if rgb is not None:
@@ -824,9 +882,12 @@ class BagDataset:
                         return None
                 else:
                     current = info
+                    if not state.get("distortion_checked"):
+                        state["distortion_checked"] = True
+                        _warn_if_not_rectified(self.path, info)
                     image_frame_id = (rgb or depth).msg.header.frame_id or info.msg.header.frame_id
-                    T = self._sensor_transform(image_frame_id, self._T_base_camera, self._fallback_camera,
-                                               base_frame)
+                    T = self._sensor_transform("camera", image_frame_id, self._T_base_camera,
+                                               self._fallback_camera, base_frame)
                     frame.camera = camera_info_from_msg(info.msg, T)
             register_to_rgb(frame).validate(self.sync)
         except (SensorDataError, ValueError) as exc:
@@ -837,6 +898,20 @@ class BagDataset:
                            self.path, synced.stamp_ns / NS_PER_S, where, exc)
             return None
         return frame
+
+
+def _warn_if_not_rectified(path: Path, info: "_Raw") -> None:
+    """Say once per bag that a camera's images are used as they are, distortion and all, when its
+    CameraInfo has distortion coefficients and no rectified projection (P = K): the images are the
+    raw ones (RTAB-Map assumes rectified images, Rtabmap/ImagesAlreadyRectified)."""
+    d = np.asarray(_field(info.msg, "d"), dtype=np.float64)
+    K = np.asarray(_field(info.msg, "k"), dtype=np.float64)
+    P = np.asarray(_field(info.msg, "p"), dtype=np.float64)
+    rectified_p = P.size == 12 and P[0] > 0 and not np.allclose((P[0], P[5], P[2], P[6]), (K[0], K[4], K[2], K[5]))
+    if d.size and np.any(d != 0) and not rectified_p:
+        logger.warning("bag %s: %s has distortion coefficients D = [%s] and P = K: the images are not rectified "
+                       "and are used as they are (undistort them first, e.g. image_proc's image_rect, or convert "
+                       "a TUM folder with 'tum2bag --rectify')", path, info.topic, " ".join(f"{v:g}" for v in d))
 
 
 # --------------------------------------------------------------------------------------------
@@ -859,7 +934,8 @@ class _MessageSink:
 
 
 def _write_frames(sink: _MessageSink, frames: Iterable[SensorFrame], topics: TopicNames, frame_ids: FrameIds,
-                  rgb_format: str, depth_format: str, tf_static: bool = True) -> int:
+                  rgb_format: str, depth_format: str, tf_static: bool = True,
+                  camera_distortion: Optional[Iterable[float]] = None) -> int:
     ts = sink.ts
     tf_written: set[str] = set()
     n = 0
@@ -882,7 +958,8 @@ def _write_frames(sink: _MessageSink, frames: Iterable[SensorFrame], topics: Top
         if frame.scan is not None:
             sink.write(topics.scan, scan_to_msg(frame.scan, t, frame_ids.laser, ts), t)
         if frame.camera is not None:
-            sink.write(topics.camera_info, camera_info_to_msg(frame.camera, t, frame_ids.camera, ts), t)
+            sink.write(topics.camera_info, camera_info_to_msg(frame.camera, t, frame_ids.camera, ts,
+                                                              camera_distortion), t)
         if frame.rgb is not None:
             if rgb_format == "jpeg":
                 sink.write(topics.rgb + COMPRESSED_SUFFIX, compressed_image_to_msg(frame.rgb, t, frame_ids.camera,
@@ -894,7 +971,8 @@ def _write_frames(sink: _MessageSink, frames: Iterable[SensorFrame], topics: Top
                 sink.write(topics.depth + COMPRESSED_DEPTH_SUFFIX,
                            compressed_depth_to_msg(frame.depth_m, t, frame_ids.camera, ts), t)
             else:
-                sink.write(topics.depth, depth_to_msg(frame.depth_m, t, frame_ids.camera, ts), t)
+                sink.write(topics.depth, depth_to_msg(frame.depth_m, t, frame_ids.camera, ts,
+                                                      DEPTH_ENCODINGS[depth_format]), t)
         n += 1
     return n
 
@@ -902,26 +980,29 @@ def _write_frames(sink: _MessageSink, frames: Iterable[SensorFrame], topics: Top
 def _check_formats(rgb_format: str, depth_format: str) -> None:
     if rgb_format not in ("raw", "jpeg"):
         raise BagError(f"rgb_format must be 'raw' or 'jpeg', got {rgb_format!r}")
-    if depth_format not in ("raw", "png"):
-        raise BagError(f"depth_format must be 'raw' (16UC1 mm) or 'png' (compressedDepth), got {depth_format!r}")
+    if depth_format not in ("raw", "float", "png"):
+        raise BagError(f"depth_format must be 'raw' (16UC1 mm), 'float' (32FC1 m) or 'png' (compressedDepth), "
+                       f"got {depth_format!r}")
 
 
 def write_bag(path, frames: Iterable[SensorFrame], topics: TopicNames = TopicNames(), storage: str = "sqlite3",
               frame_ids: FrameIds = FrameIds(), rgb_format: str = "raw", depth_format: str = "raw",
-              tf_static: bool = True) -> Path:
+              tf_static: bool = True, camera_distortion: Optional[Iterable[float]] = None) -> Path:
     """Write frames to a new ROS 2 bag folder (Jazzy typestore); return its path.
 
     Per frame, with the frame's stamp as header and bag time: Odometry (pose + covariance), LaserScan,
-    CameraInfo (K, P, D = 0), rgb as Image rgb8 on ``topics.rgb`` or, with ``rgb_format="jpeg"``,
-    CompressedImage on ``<rgb>/compressed``; depth as Image 16UC1 (mm) on ``topics.depth`` or, with
-    ``depth_format="png"``, compressedDepth on ``<depth>/compressedDepth``. ``/tf_static``
-    (TFMessage) holds base -> camera optical and base -> laser from the first frame carrying each
-    (not written with ``tf_static=False``).
+    CameraInfo (K, P = K, D = ``camera_distortion`` or zeros), rgb as Image rgb8 on ``topics.rgb`` or,
+    with ``rgb_format="jpeg"``, CompressedImage on ``<rgb>/compressed``; depth as Image 16UC1 (mm)
+    on ``topics.depth``, 32FC1 (m) with ``depth_format="float"``, or, with ``depth_format="png"``,
+    compressedDepth on ``<depth>/compressedDepth``. ``/tf_static`` (TFMessage) holds base -> camera
+    optical and base -> laser from the first frame carrying each (not written with ``tf_static=False``).
 
     Args:
         path: bag folder to create (must not exist).
         frames: frames in time order.
         storage: ``"sqlite3"`` (``.db3``) or ``"mcap"``.
+        camera_distortion: plumb_bob coefficients (k1 k2 p1 p2 k3) written in every CameraInfo's
+            ``D``, for images as recorded (not rectified).
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
     _check_formats(rgb_format, depth_format)
@@ -935,7 +1016,7 @@ def write_bag(path, frames: Iterable[SensorFrame], topics: TopicNames = TopicNam
     ts = typestore()
     with Writer(path, version=Writer.VERSION_LATEST, storage_plugin=plugins[storage]) as writer:
         n = _write_frames(_MessageSink(writer, ts, ts.serialize_cdr, ros1=False), frames, topics, frame_ids,
-                          rgb_format, depth_format, tf_static)
+                          rgb_format, depth_format, tf_static, camera_distortion)
     logger.info("wrote %d frames to %s (%s)", n, path, storage)
     return path
 

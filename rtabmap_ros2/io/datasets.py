@@ -91,24 +91,47 @@ class ImageFolderDataset:
                 yield frame
 
 
-def _read_tum_list(path: Path) -> list[list[str]]:
-    """Rows (split on whitespace) of a TUM text file, comments and blank lines skipped."""
+def read_tum_list(path: Path, fields: int, layout: str) -> list[tuple[int, int, list[str]]]:
+    """(line number, stamp in ns, fields) of the rows of a TUM text file; comments ('#') and blank
+    lines skipped. The stamp (first field) is read exactly (:func:`_to_ns`).
+
+    Args:
+        path: the file (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``).
+        fields: how many whitespace-separated fields a row has.
+        layout: the row's layout for the error message (``"stamp path"``).
+
+    Raises:
+        DatasetError: the file is missing or unreadable, or a row has another number of fields or
+            a first field that is not a number of seconds (naming the file, line and text).
+    """
     if not path.is_file():
-        raise DatasetError(f"TUM RGB-D file {path} is missing")
+        raise DatasetError(f"TUM RGB-D file {path} is missing (a TUM RGB-D folder holds rgb.txt, depth.txt and, "
+                           "for ground truth, groundtruth.txt)")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"cannot read TUM RGB-D file {path}: {exc}") from exc
     rows = []
-    for line in path.read_text().splitlines():
+    for number, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
-        if line and not line.startswith("#"):
-            rows.append(line.split())
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != fields:
+            raise DatasetError(f"{path}:{number}: expected '{layout}' ({fields} fields), got {line[:80]!r}")
+        rows.append((number, _to_ns(parts[0], f"{path}:{number}"), parts))
     return rows
 
 
-def _to_ns(stamp: str) -> int:
+def _to_ns(stamp: str, where: str = "TUM") -> int:
     """int ns of a decimal seconds string, exactly (a float64 loses the microseconds of epoch stamps)."""
     try:
-        return int((Decimal(stamp) * NS_PER_S).to_integral_value())
+        value = Decimal(stamp)
     except InvalidOperation as exc:
-        raise DatasetError(f"TUM stamp {stamp!r} is not a number of seconds") from exc
+        raise DatasetError(f"{where}: stamp {stamp!r} is not a number of seconds") from exc
+    if not value.is_finite():
+        raise DatasetError(f"{where}: stamp {stamp!r} is not a number of seconds")
+    return int((value * NS_PER_S).to_integral_value())
 
 
 def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_difference_ns: int) -> list[tuple[int, int]]:
@@ -135,6 +158,23 @@ def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_difference_ns: int
     return sorted(out)
 
 
+def read_tum_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (N,) int64 ns and poses (N,4,4) of a TUM trajectory file (``stamp tx ty tz qx qy qz
+    qw`` rows), in file order; DatasetError naming the line of a bad row (text, NaN, a zero
+    quaternion)."""
+    stamps, poses = [], []
+    for number, stamp, row in read_tum_list(path, 8, "stamp tx ty tz qx qy qz qw"):
+        try:
+            values = np.array([float(v) for v in row[1:]])
+        except ValueError as exc:
+            raise DatasetError(f"{path}:{number}: {exc} in {' '.join(row)!r}") from exc
+        if not np.isfinite(values).all() or np.linalg.norm(values[3:]) < 1e-6:
+            raise DatasetError(f"{path}:{number}: not a pose (NaN, inf or a zero quaternion): {' '.join(row)!r}")
+        stamps.append(stamp)
+        poses.append(transforms.from_xyz_quat_xyzw(values[:3], values[3:]))
+    return np.array(stamps, dtype=np.int64), np.array(poses).reshape(-1, 4, 4)
+
+
 class TumRgbdDataset:
     """A TUM RGB-D sequence folder (``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``).
 
@@ -155,8 +195,8 @@ class TumRgbdDataset:
         self.T_base_camera = np.array(DEFAULT_T_BASE_CAMERA if T_base_camera is None else T_base_camera,
                                       dtype=np.float64)
         max_diff_ns = int(round(max_difference_s * NS_PER_S))
-        rgb = [(_to_ns(r[0]), r[1]) for r in _read_tum_list(self.path / "rgb.txt")]
-        depth = sorted((_to_ns(r[0]), r[1]) for r in _read_tum_list(self.path / "depth.txt"))
+        rgb = [(t, r[1]) for _, t, r in read_tum_list(self.path / "rgb.txt", 2, "stamp path")]
+        depth = sorted((t, r[1]) for _, t, r in read_tum_list(self.path / "depth.txt", 2, "stamp path"))
         pairs = associate(np.array([t for t, _ in rgb], dtype=np.int64),
                           np.array([t for t, _ in depth], dtype=np.int64), max_diff_ns)
         if not pairs:
@@ -168,13 +208,8 @@ class TumRgbdDataset:
         self._gt_poses: list[np.ndarray] = []
         gt_file = self.path / "groundtruth.txt"
         if gt_file.is_file():
-            rows = _read_tum_list(gt_file)
-            try:
-                self._gt_stamps = np.array([_to_ns(r[0]) for r in rows], dtype=np.int64)
-                self._gt_poses = [transforms.from_xyz_quat_xyzw([float(v) for v in r[1:4]],
-                                                                [float(v) for v in r[4:8]]) for r in rows]
-            except (ValueError, IndexError) as exc:
-                raise DatasetError(f"{gt_file}: expected 'stamp tx ty tz qx qy qz qw' rows ({exc})") from exc
+            stamps, poses = read_tum_poses(gt_file)
+            self._gt_stamps, self._gt_poses = stamps, list(poses)
         self._max_diff_ns = max_diff_ns
 
     def __len__(self) -> int:

@@ -13,7 +13,11 @@
 * ``map.png``: the grid with the graph drawn as in the paper's figures (neighbour links blue,
   intra-session loop closures red, inter-session loop closures green);
 * ``cloud.ply``: the assembled, voxel-filtered RGB-D point cloud (binary PLY, x y z + RGB);
-* ``summary.json``: nodes, links by type, sessions, components, optimisation chi2 and time.
+* ``summary.json``: nodes, links by type, sessions, components, optimisation chi2 and time, the
+  mode (``planar``), what the grid was made from (``grid.source``, and ``grid.empty_reason`` when no
+  cell is known), and ``loop_closures_rejected_by_global_optimization`` (the stored loop closures
+  the robust optimisation of the global map dropped: ``[from_id, to_id, type]``; not the hypotheses
+  rejected online while mapping, which ``map`` counts per session).
 
 The grid, picture and cloud show the largest connected component (the map); the poses, nodes,
 links and g2o files hold every node with a pose. The database is opened read-only.
@@ -32,13 +36,13 @@ import numpy as np
 
 from rtabmap_ros2.core import files, transforms
 from rtabmap_ros2.core.database import Database
-from rtabmap_ros2.core.global_map import GlobalMap, global_cloud, global_grid, load_global_map
+from rtabmap_ros2.core.global_map import GlobalGrid, GlobalMap, assemble_global_grid, global_cloud, load_global_map
 from rtabmap_ros2.core.graph import LinkType
 from rtabmap_ros2.core.grid import OccupancyGrid, write_ply
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.errors import DatabaseError, DatasetError
 from rtabmap_ros2.io.g2o import write_g2o
-from rtabmap_ros2.io.trajectory import NS_PER_S, Trajectory, seconds_to_ns, write_tum
+from rtabmap_ros2.io.trajectory import Trajectory, seconds_to_ns, stamp_text, write_tum
 
 log = logging.getLogger(__name__)
 
@@ -58,11 +62,6 @@ PNG_MAX_SCALE = 4
 
 FILES = ("poses.txt", "nodes.csv", "links.csv", "graph.g2o", "map.pgm", "map.yaml", "map.png", "cloud.ply",
          "summary.json")
-
-
-def _stamp_s(stamp_ns: int) -> str:
-    """Seconds with 9 decimals, exact (as in poses.txt)."""
-    return f"{stamp_ns // NS_PER_S}.{stamp_ns % NS_PER_S:09d}"
 
 
 def export_global_map(database_path: str | os.PathLike, out_dir: str | os.PathLike, params: Params) -> dict:
@@ -133,7 +132,8 @@ def _export(database_path, out: Path, params: Params, written: list[Path]) -> di
     write("links.csv", write_links_csv, gmap)
     write("graph.g2o", write_g2o, gmap.poses, gmap.links, gmap.planar)
     with Database(database_path, read_only=True) as db:
-        grid = global_grid(gmap, db, params)
+        grid_result = assemble_global_grid(gmap, db, params)
+        grid = grid_result.grid
         t_grid = time.perf_counter()
         points, colors = global_cloud(gmap, db, params)
     t_cloud = time.perf_counter()
@@ -141,7 +141,7 @@ def _export(database_path, out: Path, params: Params, written: list[Path]) -> di
     write("map.yaml", write_map_yaml, grid, "map.pgm")
     write("map.png", write_map_png, grid, gmap)
     write("cloud.ply", write_ply, points, colors)
-    summary = _summary(gmap, grid, len(points), database_path)
+    summary = _summary(gmap, grid_result, len(points), database_path)
     summary["time_s"] = {"optimization": round(t_optimized - t0, 3), "grid": round(t_grid - t_optimized, 3),
                          "cloud": round(t_cloud - t_grid, 3), "total": round(time.perf_counter() - t0, 3)}
     summary["files"] = list(FILES)
@@ -159,7 +159,7 @@ def write_nodes_csv(path: Path, gmap: GlobalMap, order: list[int]) -> None:
         for n in order:
             T = gmap.poses[n]
             q = transforms.quat_xyzw(T)
-            w.writerow([n, gmap.map_ids[n], _stamp_s(gmap.stamps_ns[n]), *(f"{v:.6f}" for v in T[:3, 3]),
+            w.writerow([n, gmap.map_ids[n], stamp_text(gmap.stamps_ns[n]), *(f"{v:.6f}" for v in T[:3, 3]),
                         *(f"{v:.9f}" for v in q), gmap.weights[n]])
 
 
@@ -243,7 +243,8 @@ def write_map_png(path: Path, grid: OccupancyGrid, gmap: GlobalMap) -> None:
     files.write_bytes(path, png.tobytes())
 
 
-def _summary(gmap: GlobalMap, grid: OccupancyGrid, cloud_points: int, database_path) -> dict:
+def _summary(gmap: GlobalMap, grid_result: GlobalGrid, cloud_points: int, database_path) -> dict:
+    grid = grid_result.grid
     sessions = {}
     for n, m in gmap.map_ids.items():
         s = sessions.setdefault(int(m), {"map_id": int(m), "nodes": 0, "in_wm": 0})
@@ -255,7 +256,7 @@ def _summary(gmap: GlobalMap, grid: OccupancyGrid, cloud_points: int, database_p
         "nodes_in_wm": int(sum(gmap.in_wm.values())),
         "links": len(gmap.links),
         "links_by_type": dict(gmap.links_by_type),
-        "rejected_loop_closures": [[l.from_id, l.to_id, l.type.value] for l in gmap.rejected],
+        "loop_closures_rejected_by_global_optimization": [[l.from_id, l.to_id, l.type.value] for l in gmap.rejected],
         "sessions": [sessions[k] for k in sorted(sessions)],
         "components": len(gmap.components),
         "component_sizes": [len(c) for c in gmap.components],
@@ -266,7 +267,9 @@ def _summary(gmap: GlobalMap, grid: OccupancyGrid, cloud_points: int, database_p
             "iterations": int(sum(r.iterations for r in gmap.optimizations)),
             "time_s": round(gmap.optimization_time_s, 4)},
         "grid": {"width": grid.width, "height": grid.height, "resolution": grid.resolution,
-                 "origin": [grid.origin_xy[0], grid.origin_xy[1]]},
+                 "origin": [grid.origin_xy[0], grid.origin_xy[1]], "sensor": grid_result.sensor,
+                 "laser_nodes": grid_result.laser_nodes, "depth_nodes": grid_result.depth_nodes,
+                 "source": grid_result.source(), "empty_reason": grid_result.empty_reason},
         "cloud_points": int(cloud_points),
     }
 

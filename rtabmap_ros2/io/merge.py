@@ -31,7 +31,7 @@ import logging
 import os
 import threading
 from collections import Counter, defaultdict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from itertools import combinations
 from pathlib import Path
 from typing import Iterator, Optional
@@ -478,9 +478,8 @@ def _verify_again(db: Database, new_id: int, old_id: int, params: Params) -> Opt
         new, old = db.load_signatures([new_id, old_id])
     except DatabaseError:
         return f"node {new_id} or {old_id} is no longer in the map"
-    planar = bool(params.registration.planar and new.scan is not None and old.scan is not None)
     try:
-        register(new, old, replace(params.registration, planar=planar))
+        register(new, old, params.registration)   # planar as mapping used it (registration.planar)
     except RegistrationError as exc:
         return str(exc)
     return None

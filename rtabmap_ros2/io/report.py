@@ -36,7 +36,7 @@ from typing import Optional
 import numpy as np
 
 from rtabmap_ros2.core.database import Database
-from rtabmap_ros2.core.global_map import GlobalMap, global_grid, load_global_map
+from rtabmap_ros2.core.global_map import GlobalMap, assemble_global_grid, load_global_map
 from rtabmap_ros2.core.graph import Graph, Link, LinkType, chain_poses
 from rtabmap_ros2.core.grid import OccupancyGrid, build_grid
 from rtabmap_ros2.core.optimizer import optimize
@@ -203,7 +203,8 @@ def _load_run(database: Path, params: Optional[Params]) -> _Run:
         nodes = db.load_nodes()
         links = db.load_links()
         gmap = load_global_map(database, params)
-        grid = global_grid(gmap, db, params) if gmap.poses and db.load_scans(gmap.components[0]) else None
+        assembled = assemble_global_grid(gmap, db, params) if gmap.poses else None
+        grid = assembled.grid if assembled is not None and not assembled.empty_reason else None
         local_poses, local_links = _local_map(nodes, links, params, gmap.planar)
         same_as_global = bool(gmap.components) and set(local_poses) == gmap.components[0]
         local_scans = db.load_scans(list(local_poses)) if local_poses and not same_as_global else {}

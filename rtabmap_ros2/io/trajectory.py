@@ -43,11 +43,20 @@ class Trajectory:
         return self.poses[:, :3, 3]
 
 
+def stamp_text(stamp_ns: int) -> str:
+    """Seconds with 9 decimals of an int ns stamp, exactly (integer arithmetic, no float division:
+    ``1305031229528748000`` -> ``1305031229.528748000``); inverse of :func:`seconds_to_ns`."""
+    stamp_ns = int(stamp_ns)
+    sign = "-" if stamp_ns < 0 else ""
+    seconds, ns = divmod(abs(stamp_ns), NS_PER_S)
+    return f"{sign}{seconds}.{ns:09d}"
+
+
 def tum_line(stamp_ns: int, T: np.ndarray) -> str:
     """One TUM line ``stamp x y z qx qy qz qw`` (stamp in seconds, 9 decimals)."""
     q = transforms.quat_xyzw(T)
     t = T[:3, 3]
-    return (f"{stamp_ns // NS_PER_S}.{stamp_ns % NS_PER_S:09d} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} "
+    return (f"{stamp_text(stamp_ns)} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} "
             f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
 
 
@@ -240,5 +249,5 @@ def ate_sessions(estimates: dict[int, Trajectory], ground_truths: dict[int, Traj
                      np.concatenate(index_gt))
 
 
-__all__ = ["AteResult", "Trajectory", "align_rigid", "associate", "ate", "ate_sessions", "read_tum", "seconds_to_ns", "tum_line",
-           "write_tum"]
+__all__ = ["AteResult", "Trajectory", "align_rigid", "associate", "ate", "ate_sessions", "read_tum", "seconds_to_ns",
+           "stamp_text", "tum_line", "write_tum"]

@@ -196,6 +196,25 @@ def test_indefinite_information_is_kept_and_matches_gtsam(shared_data, tmp_path,
     assert not planar and transforms.is_rigid(poses[min(poses)])
 
 
+def test_cubicle_is_optimised_to_its_optimum_within_the_iteration_budget(shared_data, tmp_path):
+    """cubicle.g2o (real, 5,750 poses, 5,021 indefinite edges): the default solver converges before
+    its 100 iterations (gtsam's default LM stopped there, 1.3 % above the optimum), and a second run
+    from its output finds nothing more to gain."""
+    src = shared_data / "posegraphs" / "cubicle.g2o"
+    if not src.exists():
+        pytest.skip(f"{src} not found")
+    first = optimize(src, tmp_path / "once.g2o")
+    assert first.returncode == 0, first.stderr
+    iterations = int(re.search(r"iterations:\s+(\d+)", first.stdout).group(1))
+    chi2 = float(re.search(r"chi2 final:\s+(\S+)", first.stdout).group(1))
+    again = optimize(tmp_path / "once.g2o", tmp_path / "twice.g2o")
+    assert again.returncode == 0, again.stderr
+    chi2_again = float(re.search(r"chi2 final:\s+(\S+)", again.stdout).group(1))
+    print(f"cubicle: chi2 {chi2:.6g} in {iterations} iterations; again from there {chi2_again:.6g}")
+    assert iterations < 100
+    assert chi2_again >= (1 - 1e-3) * chi2
+
+
 def test_non_symmetric_or_nan_information_stays_an_error():
     from rtabmap_ros2.core.graph import Link, LinkType
     from rtabmap_ros2.core.optimizer import optimize as optimize_graph

@@ -17,11 +17,15 @@ from rtabmap_ros2.io.trajectory import read_tum
 from test_global_map import make_database
 
 
+# make_database's robot moves on a plane (its poses x, y, yaw): exported as such.
+PLANAR = Params().with_value("registration.planar", True)
+
+
 @pytest.fixture
 def exported(tmp_path, rng):
     gt, loops = make_database(tmp_path / "map.db", rng)
     before = (tmp_path / "map.db").read_bytes()
-    summary = export_global_map(tmp_path / "map.db", tmp_path / "out", Params())
+    summary = export_global_map(tmp_path / "map.db", tmp_path / "out", PLANAR)
     return tmp_path, gt, loops, before, summary
 
 
@@ -132,3 +136,37 @@ def test_a_failed_export_removes_what_it_created(tmp_path, rng):
     with pytest.raises(DatabaseError, match="map.png"):
         export_global_map(tmp_path / "map.db", existing, Params())
     assert sorted(p.name for p in existing.iterdir()) == ["map.png", "notes.txt"]
+
+
+# -- which parameters export uses (issue 49) ------------------------------------------------------
+
+def _export_args(config=None, overrides=()):
+    import argparse
+    return argparse.Namespace(config=config, overrides=list(overrides), default_config="rtabmap.yaml")
+
+
+def test_export_uses_the_parameters_stored_with_the_database_then_the_flags(tmp_path, rng):
+    """A 6-DoF map exports in 6 DoF without repeating the flag; --set still overrides; the shipped
+    config only when the database holds no parameters."""
+    from rtabmap_ros2.cli.common_args import params_for_database
+    from rtabmap_ros2.core.database import Database
+
+    make_database(tmp_path / "map.db", rng)
+    with Database(tmp_path / "map.db") as db:
+        assert db.get_parameters() == {}
+    params, origin = params_for_database(_export_args(), tmp_path / "map.db")
+    assert params.registration.planar and "shipped rtabmap.yaml (the database holds none)" in origin
+    mapped_with = Params().with_overrides(["Reg/Force3DoF=false", "Grid/Sensor=1", "grid.resolution=0.1"])
+    with Database(tmp_path / "map.db") as db:
+        db.set_parameters(mapped_with.to_dict())
+    params, origin = params_for_database(_export_args(), tmp_path / "map.db")
+    assert params == mapped_with and origin.startswith("those stored with the database")
+    params, origin = params_for_database(_export_args(overrides=["Reg/Force3DoF=true"]), tmp_path / "map.db")
+    assert params.registration.planar and params.grid.sensor == "depth" and "--set Reg/Force3DoF=true" in origin
+    config = tmp_path / "grid.yaml"
+    config.write_text("grid:\n  resolution: 0.02\n")
+    params, origin = params_for_database(_export_args(config=str(config)), tmp_path / "map.db")
+    assert params.grid.resolution == 0.02 and not params.registration.planar and "--config" in origin
+    summary = export_global_map(tmp_path / "map.db", tmp_path / "out", params)
+    assert summary["planar"] is False and summary["grid"]["sensor"] == "depth"
+    assert summary["loop_closures_rejected_by_global_optimization"] == [] and "rejected_loop_closures" not in summary

@@ -7,7 +7,8 @@ import pytest
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.database import Database, SensorBlobs, WriteBatch
-from rtabmap_ros2.core.global_map import global_cloud, global_grid, load_global_map
+from rtabmap_ros2.core.global_map import assemble_global_grid, global_cloud, global_grid, load_global_map
+from rtabmap_ros2.core.grid import FREE, OCCUPIED
 from rtabmap_ros2.core.graph import Link, LinkType
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
@@ -36,14 +37,14 @@ def square_path(n: int, side: float = 4.0) -> list[np.ndarray]:
     return poses
 
 
-def make_database(path, rng, sessions: int = 2, n: int = 24, wrong_loop: bool = False):
+def make_database(path, rng, sessions: int = 2, n: int = 24, wrong_loop: bool = False, scans: bool = True):
     """A database of ``sessions`` sessions driving the same square, each with its own odometry frame.
 
     Returns ``(ground_truth poses by node id, loop closure links)``. Session 2 starts half-way
     round; each session has noisy neighbour links; every node of session k > 1 is linked to the
     node of session 1 at the same place by an exact inter-session loop closure (every 4th node),
     and session 1 closes its loop with an intra-session one. ``wrong_loop`` adds a loop closure
-    whose transform is 2 m and 90 degrees off.
+    whose transform is 2 m and 90 degrees off. ``scans`` False: a camera-only robot (no laser scan).
     """
     truth = square_path(n)
     T_base_camera = transforms.identity()
@@ -74,7 +75,7 @@ def make_database(path, rng, sessions: int = 2, n: int = 24, wrong_loop: bool = 
             scan = LaserScan(np.full(90, ROOM_RADIUS_M + 0.3 * np.cos(3 * angles), np.float32), -np.pi,
                              2 * np.pi / 90, 0.1, 10.0)
             sig = Signature(id=node, map_id=m, stamp_ns=(m * 1000 + k) * NS, T_odom_base=T_odom.copy(),
-                            scan=scan, camera=camera)
+                            scan=scan if scans else None, camera=camera)
             rgb = np.full((12, 16, 3), 40 * (m + 1), np.uint8)
             depth = np.full((12, 16), 2.0, np.float32)
             batch.locations.append((sig, SensorBlobs.encode(rgb, depth)))
@@ -108,14 +109,14 @@ def aligned_error(poses: dict[int, np.ndarray], gt: dict[int, np.ndarray]) -> fl
 
 @pytest.fixture
 def params():
-    return Params()
+    return Params().with_value("registration.planar", True)   # make_database's robot moves on a plane
 
 
 def test_two_sessions_merge_into_one_component_rooted_at_newest(tmp_path, rng, params):
     gt, _ = make_database(tmp_path / "map.db", rng)
     gmap = load_global_map(tmp_path / "map.db", params)
     assert len(gmap.components) == 1 and len(gmap.components[0]) == len(gt)
-    assert gmap.planar  # registration.planar and the nodes have scans
+    assert gmap.planar  # registration.planar
     newest = max(gt)
     assert gmap.roots == [newest]
     # Root at its odometry pose: the map frame is the last session's odometry frame.
@@ -227,3 +228,52 @@ def test_false_inter_session_loops_at_the_root_do_not_shape_the_guess(tmp_path, 
     gmap = load_global_map(tmp_path / "map.db", params)
     assert sorted(l.key() for l in gmap.rejected) == sorted(l.key() for l in bad)
     assert aligned_error(gmap.poses, gt) < 0.1
+
+
+# -- what the grid is made from (grid.sensor) -------------------------------------------------------
+
+def _grid(path, params):
+    gmap = load_global_map(path, params)
+    with Database(path, read_only=True) as db:
+        return gmap, assemble_global_grid(gmap, db, params)
+
+
+def test_a_laser_robot_grid_comes_from_its_scans_by_default(tmp_path, rng, params):
+    make_database(tmp_path / "map.db", rng)
+    gmap, result = _grid(tmp_path / "map.db", params)
+    assert (result.sensor, result.laser_nodes, result.depth_nodes) == ("auto", len(gmap.poses), 0)
+    laser_only = _grid(tmp_path / "map.db", params.with_value("Grid/Sensor", 0))[1]
+    np.testing.assert_array_equal(result.grid.data, laser_only.grid.data)
+    both = _grid(tmp_path / "map.db", params.with_value("Grid/Sensor", 2))[1]
+    assert both.laser_nodes == both.depth_nodes == len(gmap.poses) and not both.empty_reason
+
+
+def test_a_camera_only_map_gets_its_grid_from_the_depth_images(tmp_path, rng, params):
+    """No laser: the depth images (2 m ahead of a camera 0.5 m up) make walls and free floor, not an
+    empty 1x1 grid."""
+    make_database(tmp_path / "map.db", rng, scans=False)
+    gmap, result = _grid(tmp_path / "map.db", params)
+    assert (result.laser_nodes, result.depth_nodes, result.empty_reason) == (0, len(gmap.poses), "")
+    assert result.grid.width > 10 and (result.grid.data == OCCUPIED).any() and (result.grid.data == FREE).any()
+    assert "depth images of" in result.source()
+    # What the node's get_map and the report use is the same grid.
+    with Database(tmp_path / "map.db", read_only=True) as db:
+        np.testing.assert_array_equal(global_grid(gmap, db, params).data, result.grid.data)
+
+
+def test_an_empty_grid_says_why(tmp_path, rng, params, caplog):
+    make_database(tmp_path / "map.db", rng, scans=False)
+    gmap, result = _grid(tmp_path / "map.db", params.with_value("Grid/Sensor", 0))
+    assert result.grid.width == result.grid.height == 1 and result.laser_nodes == result.depth_nodes == 0
+    assert "Grid/Sensor" in result.empty_reason and "laser scan" in result.empty_reason
+    assert any("occupancy grid is empty" in r.message and r.levelname == "WARNING" for r in caplog.records)
+    # Depth points all out of reach: the reason names range and heights.
+    far = params.with_value("grid.range_max", 1.0)
+    assert "grid.range_max (1 m)" in _grid(tmp_path / "map.db", far)[1].empty_reason
+
+
+def test_planar_follows_the_parameter_whatever_the_sensors(tmp_path, rng, params):
+    """Reg/Force3DoF as in RTAB-Map: applied as given, with or without a laser."""
+    make_database(tmp_path / "map.db", rng, scans=False)
+    assert load_global_map(tmp_path / "map.db", params).planar
+    assert not load_global_map(tmp_path / "map.db", params.with_value("Reg/Force3DoF", False)).planar

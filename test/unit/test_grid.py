@@ -6,7 +6,8 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.grid import (FREE, OCCUPIED, UNKNOWN, GridAccumulator, assemble_cloud, build_grid,
-                                    scan_conflict, voxel_filter, write_ply)
+                                    depth_cells, scan_conflict, voxel_filter, write_ply)
+from rtabmap_ros2.io.bag import DEFAULT_T_BASE_CAMERA
 from rtabmap_ros2.core.params import GridParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 
@@ -157,3 +158,87 @@ def test_scan_conflict_tells_a_wrong_alignment_from_the_right_one(rng):
         assert scan_conflict(a, b(shift), 0.2, 10.0, 180)[0] > 0.2
     # Nothing observed in common: no evidence either way.
     assert scan_conflict(a, [(transforms.from_xy_yaw(100, 0, 0), room_scan(0, 0))], 0.2, 10.0, 180) == (0.0, 0)
+
+
+# -- depth images (grid.sensor depth) --------------------------------------------------------------
+
+WALL_X = 2.02          # a wall across the view, 2.02 m ahead of the camera (m; mid-cell)
+CAMERA_HEIGHT = 1.0    # the camera's height above the floor (m): the base at z = 1, looking along x
+DEPTH_CAMERA = CameraModel(80.0, 80.0, 79.5, 59.5, 160, 120, np.array(DEFAULT_T_BASE_CAMERA))  # +-37 deg down
+
+
+def wall_and_floor_depth(camera: CameraModel = DEPTH_CAMERA, height: float = CAMERA_HEIGHT) -> np.ndarray:
+    """HxW depth (m) of a camera ``height`` above a floor (z = 0), looking along +x at a wall x = WALL_X."""
+    rows, cols = np.mgrid[0:camera.height, 0:camera.width]
+    down = (rows - camera.cy) / camera.fy           # optical y (down) per unit of depth
+    with np.errstate(divide="ignore"):
+        floor = np.where(down > 0, height / down, np.inf)   # depth at which the ray meets z = 0
+    return np.minimum(floor, WALL_X).astype(np.float32)
+
+
+def test_depth_cells_put_the_wall_in_obstacles_and_the_floor_in_ground():
+    T_map_base = transforms.from_xy_yaw(0.0, 0.0, 0.0, z=CAMERA_HEIGHT)
+    cells = depth_cells(T_map_base, wall_and_floor_depth(), DEPTH_CAMERA, GridParams(resolution=RES))
+    np.testing.assert_allclose(cells.origin_xy, (0.0, 0.0), atol=1e-9)
+    # The wall (above the ground height, 1 cell) lies in the cell column holding it, [2.00, 2.05) m.
+    assert len(cells.obstacles_xy) and np.allclose(cells.obstacles_xy[:, 0], 2.025)
+    # The floor seen between the camera and the wall: ground, never in an obstacle's cell.
+    assert len(cells.ground_xy) and cells.ground_xy[:, 0].max() < WALL_X + RES
+    obstacle = {tuple(c) for c in np.round(cells.obstacles_xy / RES, 3).tolist()}
+    assert not obstacle & {tuple(c) for c in np.round(cells.ground_xy / RES, 3).tolist()}
+
+
+def test_depth_cells_height_limits_and_range():
+    T_map_base = transforms.from_xy_yaw(0.0, 0.0, 0.0, z=CAMERA_HEIGHT)
+    depth = wall_and_floor_depth()
+    full = depth_cells(T_map_base, depth, DEPTH_CAMERA, GridParams(resolution=RES))
+    # Obstacles only up to 0.5 m: the wall's upper part is dropped, its lower part stays.
+    low = depth_cells(T_map_base, depth, DEPTH_CAMERA, GridParams(resolution=RES, max_obstacle_height=0.5))
+    assert 0 < len(low.obstacles_xy) <= len(full.obstacles_xy)
+    assert len(depth_cells(T_map_base, depth, DEPTH_CAMERA, GridParams(resolution=RES, max_obstacle_height=0.06))
+               .obstacles_xy) < len(low.obstacles_xy)
+    # Ground from 0.02 m only: the floor (z = 0) is dropped.
+    assert not len(depth_cells(T_map_base, depth, DEPTH_CAMERA, GridParams(resolution=RES, min_ground_height=0.02,
+                                                                          max_ground_height=0.05)).ground_xy)
+    # Depth beyond range_max is not used: with 1.5 m, no wall and only the near floor.
+    near = depth_cells(T_map_base, depth, DEPTH_CAMERA, GridParams(resolution=RES, range_max=1.5))
+    assert not len(near.obstacles_xy) and near.ground_xy[:, 0].max() < 1.5
+
+
+def test_a_depth_image_makes_the_wall_occupied_and_the_floor_before_it_free():
+    params = GridParams(resolution=RES, depth_decimation=1)
+    acc = GridAccumulator(params)
+    T_map_base = transforms.from_xy_yaw(0.0, 0.0, 0.0, z=CAMERA_HEIGHT)
+    acc.add_depth(depth_cells(T_map_base, wall_and_floor_depth(), DEPTH_CAMERA, params))
+    grid = acc.grid()
+    assert (grid.value_at(np.stack([np.full(21, WALL_X), np.linspace(-0.5, 0.5, 21)], axis=1)) == OCCUPIED).all()
+    assert (grid.value_at(np.array([[x, 0.0] for x in (0.5, 1.0, 1.5, 1.9)])) == FREE).all()
+    assert grid.value_at(np.array([[WALL_X + 0.5, 0.0]]))[0] == UNKNOWN
+
+
+def test_a_depth_view_counts_once_per_cell_however_many_beams_cross_it():
+    """A desk seen twice stays occupied when a third view's rays pass over it to the wall behind:
+    one view is one vote per cell, not one per beam (thousands of beams cross the cells near it)."""
+    desk = 1.0
+    params = GridParams(resolution=RES)
+    acc = GridAccumulator(params)
+    from rtabmap_ros2.core.grid import DepthCells
+    for _ in range(2):   # two views of the desk cell at (1.0, 0)
+        acc.add_depth(DepthCells(np.zeros(2), np.array([[desk + RES / 2, RES / 2]]), np.zeros((0, 2))))
+    ends = np.stack([np.full(200, WALL_X), np.linspace(-0.02, 0.07, 200)], axis=1)
+    acc.add_depth(DepthCells(np.zeros(2), ends, np.zeros((0, 2))))   # 200 beams over it to the wall
+    assert acc.grid().value_at(np.array([[desk + 0.01, 0.01]]))[0] == OCCUPIED
+
+
+def test_a_depth_view_taken_back_leaves_the_counts_it_found():
+    params = GridParams(resolution=RES)
+    T = transforms.from_xy_yaw(0.3, -0.2, 0.4, z=CAMERA_HEIGHT)
+    cells = depth_cells(T, wall_and_floor_depth(), DEPTH_CAMERA, params)
+    acc = GridAccumulator(params)
+    acc.add(transforms.identity(), room_scan(0.0, 0.0))
+    before = acc.grid()
+    acc.add_depth(cells)
+    acc.add_depth(cells, weight=-1)
+    after = acc.grid()
+    np.testing.assert_array_equal(after.data, before.data)
+    assert acc.observed and not GridAccumulator(params).observed

@@ -110,7 +110,7 @@ def drive_circle_in_hall(tmp_path, scan_map_nodes: int, steps: int = 60) -> floa
     """Rtabmap fed odometry and scans only, driving a 3.2 m circle in HALL (laser noise 1 cm);
     returns the yaw error (deg) of the last node when the neighbour links are chained."""
     rng = np.random.default_rng(1)
-    params = Params().with_overrides(["registration.neighbor_link_refining=true",
+    params = Params().with_overrides(["registration.planar=true", "registration.neighbor_link_refining=true",
                                       f"registration.neighbor_scan_map_nodes={scan_map_nodes}"])
     covariance = np.diag([1e-4, 1e-4, 1e-6, 1e-6, 1e-6, np.deg2rad(0.13) ** 2])
     step = transforms.from_xy_yaw(0.5, 0.0, np.deg2rad(9.0))

@@ -165,3 +165,135 @@ def test_a_map_merge_the_scans_contradict_is_refused(tmp_path):
         assert [rtabmap.validator.allows(link) for link in true_ones] == [False, False, True]
     finally:
         rtabmap.close()
+
+
+# -- RGBD/OptimizeMaxError on real hand-held loop closures (6 DoF, issue 49) ---------------------------
+
+# Odometry along the hand-held test loop: each of its steps good to 2 mm and 0.1 deg.
+STEP_SIGMA_M, STEP_SIGMA_RAD = 0.002, np.deg2rad(0.1)
+LOOP_STEPS = 10
+
+
+def _interpolated(T_a: np.ndarray, T_b: np.ndarray, s: float) -> np.ndarray:
+    """The pose a fraction ``s`` of the way from T_a to T_b (translation linear, rotation along the
+    relative rotation's axis)."""
+    import cv2
+
+    relative = transforms.relative(T_a, T_b)
+    step = np.eye(4)
+    step[:3, :3] = cv2.Rodrigues(s * cv2.Rodrigues(relative[:3, :3])[0])[0]
+    step[:3, 3] = s * relative[:3, 3]
+    return T_a @ step
+
+
+def _hand_held_loop(tmp_path, T_world_old, T_world_new, overrides: tuple[str, ...] = ()):
+    """A 6-DoF Rtabmap whose memory holds the camera's way from the old frame of a real pair to its
+    new one (LOOP_STEPS neighbour links, odometry = the motion capture, STEP_SIGMA_* each), the local
+    map optimised up to the node before the new one (``overrides``: ``NAME=VALUE`` parameters); returns
+    (rtabmap, a function adding the new node with a loop closure to the old one and telling whether
+    it was rejected)."""
+    from rtabmap_ros2.core.params import Params
+    from rtabmap_ros2.core.rtabmap import Rtabmap
+    from rtabmap_ros2.core.signature import Signature
+
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    params = Params().with_value("registration.planar", False).with_overrides(list(overrides))
+    rtabmap = Rtabmap(params, tmp_path / "hand_held.db")
+    rtabmap.local.planar = False
+    memory = rtabmap.memory
+    info = np.diag(1.0 / np.array([STEP_SIGMA_M ** 2] * 3 + [STEP_SIGMA_RAD ** 2] * 3))
+    poses = [_interpolated(T_world_old, T_world_new, k / LOOP_STEPS) for k in range(LOOP_STEPS + 1)]
+
+    def add(node: int) -> None:
+        neighbor = None if node == 1 else Link(node - 1, node, LinkType.NEIGHBOR,
+                                               transforms.relative(poses[node - 2], poses[node - 1]), info)
+        memory.add_location(Signature(id=node, map_id=0, stamp_ns=node, T_odom_base=poses[node - 1]), None, neighbor)
+        memory.update_stm()
+
+    for node in range(1, LOOP_STEPS + 1):
+        add(node)
+        rtabmap.local.new_loops = []
+        rtabmap.local.update(node)
+
+    def close_loop(T_new_old: np.ndarray, information: np.ndarray) -> bool:
+        new = LOOP_STEPS + 1
+        add(new)
+        link = Link(new, 1, LinkType.LOOP_INTRA, T_new_old, information)
+        rtabmap.local.new_loops = [(link, memory.add_loop_closure(link))]
+        rejected = rtabmap.local.update(new)
+        assert (memory.graph.link(new, 1) is None) == rejected
+        return rejected
+
+    return rtabmap, close_loop
+
+
+# Real loop pairs registered by PnP (bench/bench_registration.py): kept ones within 3 cm / 1.5 deg of
+# the motion capture, rejected ones (motion blur, rolling shutter) off by more.
+KEPT_REAL_PAIRS = ("case_11", "case_18", "case_22", "case_23")
+REJECTED_REAL_PAIRS = ("case_04", "case_10", "case_12", "case_13")
+OFF_M, OFF_DEG = 0.03, 1.5
+
+
+def _pnp_loop_closure(shared_data, case):
+    """The PnP loop closure of a real pair as the SLAM path registers it (config/rtabmap.yaml in
+    6 DoF), its error against the motion capture (m, deg) and the pair's two true poses."""
+    from rgbd_pairs import load_tum, product_signatures
+    from rtabmap_ros2.core.params import Params, default_config_path
+    from rtabmap_ros2.core.registration import register
+
+    folder = shared_data / "rgbd" / "tum_fr1_rpy_loops" / case
+    params = Params.from_yaml(default_config_path()).with_value("registration.planar", False)
+    new, old, descriptors, truth = product_signatures(folder, params)
+    reg = register(new, old, params.registration, descriptors=descriptors)
+    error = transforms.inverse(truth) @ reg.T_from_to
+    off = (float(np.linalg.norm(error[:3, 3])), float(np.degrees(transforms.rotation_angle(error))))
+    return reg, off, load_tum(folder, "prev")[2], load_tum(folder, "curr")[2]
+
+
+@pytest.mark.parametrize("case, kept", [(c, True) for c in KEPT_REAL_PAIRS] + [(c, False) for c in REJECTED_REAL_PAIRS])
+def test_a_real_loop_closure_is_kept_or_rejected_by_its_agreement_with_the_graph(shared_data, tmp_path, case, kept):
+    """Real loop pairs of a hand-held Kinect turning fast (fr1_rpy, 36-117 deg/s), registered by PnP as
+    the SLAM path does, each closing a loop whose odometry is the motion capture. The ones within 3 cm
+    and 1.5 deg of it (e.g. case_22, 87 deg/s: 1.1 cm / 0.9 deg) are kept; the ones motion blur and
+    rolling shutter put off by more than their standard deviations allow (e.g. case_12, 52 deg/s:
+    6 cm / 4.9 deg, standard deviations 1.1 cm / 0.57 deg) are removed by RGBD/OptimizeMaxError."""
+    reg, (t_err, r_err), T_old, T_new = _pnp_loop_closure(shared_data, case)
+    assert (t_err <= OFF_M and r_err <= OFF_DEG) == kept, (case, t_err, r_err)  # the pair is what it is said to be
+    rtabmap, close_loop = _hand_held_loop(tmp_path, T_old, T_new)
+    try:
+        assert close_loop(reg.T_from_to, reg.information) is not kept
+    finally:
+        rtabmap.close()
+
+
+def test_without_the_graph_check_the_off_real_loop_closure_stays(shared_data, tmp_path):
+    """The control of the test above: with RGBD/OptimizeMaxError off (0), case_12's loop closure,
+    6 cm / 4.9 deg off, stays in the map; so it is the graph check that removes it."""
+    reg, _, T_old, T_new = _pnp_loop_closure(shared_data, "case_12")
+    rtabmap, close_loop = _hand_held_loop(tmp_path, T_old, T_new, ("RGBD/OptimizeMaxError=0",))
+    try:
+        assert close_loop(reg.T_from_to, reg.information) is False
+    finally:
+        rtabmap.close()
+
+
+def test_a_loop_closure_off_by_10_cm_with_a_tight_covariance_is_rejected(shared_data, tmp_path):
+    """The same true loop closure (case_22's PnP estimate and information) moved 10 cm: the graph
+    check removes it, while the estimate itself stays."""
+    from rgbd_pairs import load_tum, product_signatures
+    from rtabmap_ros2.core.params import Params, default_config_path
+    from rtabmap_ros2.core.registration import register
+
+    folder = shared_data / "rgbd" / "tum_fr1_rpy_loops" / "case_22"
+    params = Params.from_yaml(default_config_path()).with_value("registration.planar", False)
+    new, old, descriptors, _ = product_signatures(folder, params)
+    reg = register(new, old, params.registration, descriptors=descriptors)
+    assert 1 / np.sqrt(reg.information[0, 0]) < 0.05  # the link claims a few centimetres
+    off = reg.T_from_to @ transforms.from_xyz_rpy([0.10, 0.0, 0.0, 0.0, 0.0, 0.0])
+    for T, kept in ((off, False), (reg.T_from_to, True)):
+        rtabmap, close_loop = _hand_held_loop(tmp_path / str(kept), load_tum(folder, "prev")[2],
+                                              load_tum(folder, "curr")[2])
+        try:
+            assert close_loop(T, reg.information) is not kept
+        finally:
+            rtabmap.close()

@@ -133,13 +133,41 @@ def test_loop_closures_rejected_before_start_out_and_true_ones_come_back(rng):
     assert max(np.linalg.norm(back.poses[k][:3, 3] - first.poses[k][:3, 3]) for k in odom) < 1e-3
 
 
-@pytest.mark.parametrize("optimizer", ["lm", "gn", "dogleg"])
+@pytest.mark.parametrize("optimizer", ["lm", "gn", "dogleg", "auto"])
 def test_optimizers_agree(rng, optimizer):
     truth, odom, links = _square_loop_graph(rng)
     result = optimize(odom, links, max(odom), GraphParams(optimizer=optimizer, robust=False), planar=True)
     reference = optimize(odom, links, max(odom), PLAIN, planar=True)
     assert result.chi2_final == pytest.approx(reference.chi2_final, rel=1e-3)
     assert result.chi2_final < result.chi2_initial
+
+
+def test_auto_is_lm_itself_where_lms_damping_works(shared_data):
+    """intel.g2o: LM never fails a damping after its first iteration, so ``auto`` stays LM: the
+    same iterations and the same poses."""
+    poses, links, planar = read_g2o(shared_data / "posegraphs" / "intel.g2o")
+    root = min(poses)
+    lm = optimize(poses, links, root, PLAIN, planar, cache=False)
+    auto = optimize(poses, links, root, GraphParams(optimizer="auto", robust=False), planar, cache=False)
+    assert auto.iterations == lm.iterations
+    assert max(np.abs(auto.poses[k] - lm.poses[k]).max() for k in poses) < 1e-12
+
+
+def test_dogleg_hands_over_to_lm_where_the_gauss_newton_system_is_singular():
+    """A node whose only link carries no yaw information: Gauss-Newton's system is singular there
+    (gn fails); dogleg goes on with Levenberg-Marquardt and reaches LM's optimum."""
+    step = transforms.from_xy_yaw(1.0, 0.0, 0.1)
+    poses = {i: transforms.from_xy_yaw(float(i), 0.05 * i, 0.0) for i in range(6)}
+    links = [Link(i, i + 1, LinkType.NEIGHBOR, step, default_information(1e-2)) for i in range(4)]
+    links.append(Link(2, 4, LinkType.LOOP_INTRA, transforms.from_xy_yaw(2.0, 0.1, 0.2), default_information(1e-2)))
+    links.append(Link(4, 5, LinkType.NEIGHBOR, step, np.diag([100.0, 100, 100, 100, 100, 0])))
+    with pytest.raises(OptimizationError, match="Indeterminate"):
+        optimize(poses, links, 0, GraphParams(optimizer="gn", robust=False), planar=True)
+    lm = optimize(poses, links, 0, PLAIN, planar=True)
+    dogleg = optimize(poses, links, 0, GraphParams(optimizer="dogleg", robust=False), planar=True)
+    assert dogleg.chi2_final == pytest.approx(lm.chi2_final, rel=1e-6)
+    assert dogleg.chi2_final < 1e-2 * dogleg.chi2_initial
+    assert np.allclose(dogleg.poses[0], poses[0], atol=1e-6)
 
 
 def test_pose3_information_reordering():

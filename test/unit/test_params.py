@@ -66,6 +66,16 @@ def test_one_detector_for_detect_map_and_the_node():
     ("Kp/MaxFeatures", "200", "features", "max_features", 200),
     ("Kp/BadSignRatio", "0.5", "memory", "bad_signature_ratio", 0.5),
     ("Kp/DetectorStrategy", "2", "features", "detector", "orb"),
+    ("Reg/Force3DoF", "false", "registration", "planar", False),
+    ("Grid/Sensor", "0", "grid", "sensor", "laser"),
+    ("Grid/Sensor", 1, "grid", "sensor", "depth"),
+    ("Grid/Sensor", "2", "grid", "sensor", "both"),
+    ("Grid/FromDepth", "true", "grid", "sensor", "depth"),
+    ("Grid/FromDepth", "false", "grid", "sensor", "laser"),
+    ("Grid/DepthDecimation", "2", "grid", "depth_decimation", 2),
+    ("Grid/MaxObstacleHeight", "1.5", "grid", "max_obstacle_height", 1.5),
+    ("Grid/MaxGroundHeight", "0.1", "grid", "max_ground_height", 0.1),
+    ("Grid/MinGroundHeight", "-0.5", "grid", "min_ground_height", -0.5),
 ])
 def test_rtabmap_aliases_map_to_typed_fields(alias, value, section, field, expected):
     p = Params().with_value(alias, value)
@@ -83,7 +93,9 @@ def test_set_overrides_accept_dotted_and_rtabmap_names_in_order():
 @pytest.mark.parametrize("assignment", ["memory.stm_size", "nosuch.key=1", "memory.nosuch=1", "Mem/Nosuch=2",
                                         "memory.stm_size=0", "memory.stm_size=abc", "memory.stm_size=2.5",
                                         "bayes.loop_threshold=1.5", "vocabulary.nndr=0", "VhEp/MatchCountMin=7",
-                                        "features.detector=surf", "memory.keep_one_node_per_session=maybe"])
+                                        "features.detector=surf", "memory.keep_one_node_per_session=maybe",
+                                        "Grid/Sensor=3", "grid.sensor=lidar", "Grid/MaxObstacleHeight=0.02",
+                                        "Grid/MinGroundHeight=0.2"])
 def test_bad_set_assignments_raise_parameter_error(assignment):
     with pytest.raises(ParameterError):
         Params().with_overrides([assignment])
@@ -146,6 +158,9 @@ def test_shipped_config_loads_with_the_2014_values():
     assert p.memory.stm_size == 10
     assert p.memory.rehearsal_similarity == pytest.approx(0.45)
     assert p.memory.time_threshold_ms == pytest.approx(700.0)
+    # Planar for the wheeled robot it describes; RTAB-Map's (and the code's) default is 6 DoF.
+    assert p.registration.planar and not Params().registration.planar
+    assert p.grid.sensor == "auto"
 
 
 def test_round_trip_through_yaml(tmp_path):

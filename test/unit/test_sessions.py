@@ -15,7 +15,8 @@ from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.rtabmap import Rtabmap
 from rtabmap_ros2.core.sensor import SensorFrame
-from rtabmap_ros2.core.sessions import ODOM_RESET_VARIANCE, REQUESTED, Sessions, odometry_information
+from rtabmap_ros2.core.sessions import (ODOM_RESET_VARIANCE, PLANAR_TOLERANCE_M, PLANAR_TOLERANCE_RAD, REQUESTED,
+                                        PlanarOdometryCheck, Sessions, odometry_information)
 from rtabmap_ros2.sim import build_world, make_sessions
 from rtabmap_ros2.sim.robot import reset_odometry, step_covariance
 
@@ -218,3 +219,58 @@ def test_neighbour_link_information_ignores_unusable_variances():
     info = odometry_information(frame, default_variance=0.5)
     np.testing.assert_allclose(np.diag(info), [100.0, 2.0, 2.0, 25.0, 2.0, 4.0])
     assert np.count_nonzero(info - np.diag(np.diag(info))) == 0
+
+
+# -- planar mode meeting odometry that is not planar (issue 49) ----------------------------------
+
+def hand_held(n: int = 12) -> list[np.ndarray]:
+    """A camera body carried by hand: 0.5 m forward, rising 0.3 m and pitching 20 deg as it goes."""
+    return [transforms.from_xyz_rpy([0.05 * k, 0.0, 0.03 * k, 0.0, np.deg2rad(-2.0 * k), 0.1 * k]) for k in range(n)]
+
+
+def planar_warnings(caplog) -> list[str]:
+    return [r.message for r in caplog.records if "leaves the plane" in r.message]
+
+
+def test_planar_mode_on_hand_held_odometry_is_warned_once_per_session(tmp_path, caplog):
+    poses = hand_held()
+    frames = pose_frames(range(len(poses)), poses) + pose_frames(range(100, 100 + len(poses)), poses)
+    planar = Params().with_value("Reg/Force3DoF", True)
+    with Rtabmap(planar, tmp_path / "hand.db", delete_existing=True) as rtabmap:
+        for k, frame in enumerate(frames):
+            if k == len(poses):
+                rtabmap.trigger_new_map()
+            rtabmap.process(frame)
+        assert rtabmap.local.planar   # applied without a laser, as RTAB-Map applies Reg/Force3DoF
+        out = rtabmap.planarity.sessions
+    warnings = planar_warnings(caplog)
+    assert len(warnings) == 2 and "map 0" in warnings[0] and "map 1" in warnings[1]
+    assert "Reg/Force3DoF=false" in warnings[0]
+    assert out[0].height_m == pytest.approx(0.33) and out[0].tilt_rad == pytest.approx(np.deg2rad(22), abs=1e-6)
+
+
+def test_6dof_mode_and_a_robot_on_a_floor_give_no_warning(tmp_path, caplog):
+    with Rtabmap(Params(), tmp_path / "six.db", delete_existing=True) as rtabmap:   # RTAB-Map's default: 6 DoF
+        for frame in pose_frames(range(12), hand_held()):
+            rtabmap.process(frame)
+        assert rtabmap.local.planar is False and not rtabmap.planarity.sessions
+    floor = drive([(0, 0), (4, 0), (4, 3)])
+    with Rtabmap(Params().with_value("registration.planar", True), tmp_path / "floor.db") as rtabmap:
+        for frame in pose_frames(range(len(floor)), floor):
+            rtabmap.process(frame)
+        assert rtabmap.planarity.sessions[0].planar
+    assert not planar_warnings(caplog)
+
+
+def test_the_plane_is_the_first_pose_of_the_session():
+    """A camera body tilted from the start (a hand-held start, a robot on a ramp) that then moves
+    in its own plane is planar; the tolerances are what separates the two."""
+    check = PlanarOdometryCheck()
+    start = transforms.from_xyz_rpy([1.0, 2.0, 1.5, 0.4, -0.3, 1.0])
+    for k in range(5):
+        assert check.update(0, start @ transforms.from_xy_yaw(0.3 * k, 0.1 * k, 0.2 * k)) is None
+    assert check.sessions[0].planar
+    assert check.update(0, start @ transforms.from_xy_yaw(0.0, 0.0, 0.0, z=0.9 * PLANAR_TOLERANCE_M)) is None
+    assert check.update(0, start @ transforms.from_xyz_rpy([0, 0, 0, 0.9 * PLANAR_TOLERANCE_RAD, 0, 0])) is None
+    assert check.update(0, start @ transforms.from_xyz_rpy([0, 0, 0, 0, 1.1 * PLANAR_TOLERANCE_RAD, 0]))
+    assert check.update(0, start @ transforms.from_xy_yaw(0.0, 0.0, 0.0, z=2.0)) is None   # said once

@@ -7,7 +7,8 @@ import pytest
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.errors import DatasetError
-from rtabmap_ros2.io.trajectory import Trajectory, align_rigid, associate, ate, read_tum, write_tum
+from rtabmap_ros2.io.trajectory import (Trajectory, align_rigid, associate, ate, read_tum, seconds_to_ns, stamp_text,
+                                       write_tum)
 
 NS = 1_000_000_000
 
@@ -30,6 +31,13 @@ def test_tum_round_trip_keeps_stamps_exactly(tmp_path, rng, random_se3):
     np.testing.assert_array_equal(back.stamps_ns, stamps)
     np.testing.assert_allclose(back.poses, poses, atol=2e-6)
     assert (tmp_path / "t.txt").read_text().splitlines()[1].split()[0] == "1700000000.000000001"
+
+
+@pytest.mark.parametrize("stamp_ns, text", [(1305031229528748000, "1305031229.528748000"), (0, "0.000000000"),
+                                            (5, "0.000000005"), (-1_500_000_000, "-1.500000000")])
+def test_stamp_text_is_exact(stamp_ns, text):
+    """Integer arithmetic: a float division gave 1305031229.528748035 for the first (issue 49)."""
+    assert stamp_text(stamp_ns) == text and seconds_to_ns(text) == stamp_ns
 
 
 def test_read_tum_names_the_bad_line(tmp_path):

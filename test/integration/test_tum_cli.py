@@ -1,0 +1,76 @@
+"""A camera-only, hand-held user end to end (issue 49): ``tum2bag`` on a TUM RGB-D folder of 48 real
+fr1_rpy frames, ``map`` with the documented options only, ``export`` with none: 6 DoF throughout,
+a grid from the depth images, every pose written, and the run saying what it did."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from cli_result import error_line
+from rtabmap_ros2.io.trajectory import read_tum
+
+CLI = [sys.executable, "-m", "rtabmap_ros2.cli.cli"]
+
+
+def run(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.slow
+def test_hand_held_camera_from_tum_folder_to_exported_6dof_map(tum_rpy_folder, tmp_path):
+    folder = tum_rpy_folder()
+    bag = tmp_path / "fr1_rpy"
+    converted = run("tum2bag", folder, "--out", bag, "--drift-yaw-deg-s", "0.5", "--drift-m-s", "0.01")
+    assert converted.returncode == 0, converted.stderr
+    assert converted.stdout.startswith("48 frames") and "fr1, from the folder name" in converted.stdout
+    assert "Reg/Force3DoF=false" in converted.stdout   # the next command, as the README gives it
+
+    db, stats = tmp_path / "map.db", tmp_path / "stats.csv"
+    mapped = run("map", bag, "--db", db, "--no-progress", "--stats", stats, "--set", "Reg/Force3DoF=false")
+    assert mapped.returncode == 0, mapped.stderr
+    out = mapped.stdout
+    assert out.startswith("mode: 6 DoF") and "occupancy grid: each node's laser scan, else its depth image" in out
+    assert "fr1_rpy: reading /odom (odom), /rgb/image (rgb), /depth/image (depth), /rgb/camera_info" in out
+    assert "not in the bag: /scan" in out
+    assert "camera mount from /tf_static (base_link -> camera_optical)" in out
+    # 48 frames over 24 s: the 1 Hz default keeps about one a second and says how many it skipped.
+    line = next(l for l in out.splitlines() if "synchronised frames" in l)
+    synchronised, processed, skipped = (int(line.split(w)[0].split()[-1])
+                                        for w in (" synchronised", " processed", " skipped by the detection rate"))
+    assert synchronised == 48 and processed + skipped == 48 and 15 <= processed <= 30
+    assert "leaves the plane" not in mapped.stderr          # 6 DoF: nothing to warn about
+    assert "not rectified" in mapped.stderr                 # the images are used as recorded, and it says so
+    with open(stats, newline="") as f:
+        rows = list(csv.DictReader(f))
+    listed = {line.split()[0] for line in (folder / "rgb.txt").read_text().splitlines()[1:]}
+    assert len(rows) == processed and all(r["stamp"][:-3] in listed and r["stamp"].endswith("000") for r in rows)
+
+    exported = run("export", db, "--out", tmp_path / "export")
+    assert exported.returncode == 0, exported.stderr
+    assert "parameters: those stored with the database" in exported.stdout
+    assert "6 DoF (registration.planar false)" in exported.stdout and "from depth images of" in exported.stdout
+    summary = json.loads((tmp_path / "export" / "summary.json").read_text())
+    assert summary["planar"] is False and summary["grid"]["depth_nodes"] == summary["nodes"] == processed
+    pgm = cv2.imread(str(tmp_path / "export" / "map.pgm"), cv2.IMREAD_UNCHANGED)
+    assert pgm.shape[0] > 20 and pgm.shape[1] > 20 and (pgm == 0).any() and (pgm == 254).any()
+    poses = read_tum(tmp_path / "export" / "poses.txt")
+    truth = read_tum(bag / "ground_truth.txt")
+    assert len(poses.stamps_ns) == processed and set(poses.stamps_ns) <= set(truth.stamps_ns)
+    # Heights kept (6 DoF): the hand-held camera's 1.4-1.6 m above the floor, not flattened to 0.
+    assert np.ptp(poses.positions[:, 2]) > 0.02 and np.abs(poses.positions[:, 2]).max() > 1.0
+
+
+def test_tum2bag_names_what_is_missing(tmp_path):
+    (tmp_path / "rgbd_dataset_freiburg1_empty").mkdir()
+    line = error_line(run("tum2bag", tmp_path / "rgbd_dataset_freiburg1_empty", "--out", tmp_path / "bag"))
+    assert "rgb.txt is missing" in line and not (tmp_path / "bag").exists()
+    line = error_line(run("tum2bag", tmp_path / "rgbd_dataset_freiburg1_empty", "--out", tmp_path / "bag",
+                          "--camera", "kinect"))
+    assert "--camera 'kinect'" in line
