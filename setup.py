@@ -22,8 +22,12 @@ setup(
         # 4.x: OpenCV 5 moved several detectors out of the main wheel (LIBRARIES.md).
         "opencv-python-headless>=4.8,<5",
         "pyyaml>=6,<7",
-        # Incremental vocabulary index (binary IVF with add/remove), see bench/bench_vocabulary.py.
+        # Exact word search (vocabulary.index flat: knn_hamming / knn).
         "faiss-cpu>=1.8,<2",
+        # The default word search, FLANN's randomized kd-trees (core/kdtree.py), compiled: 5k ORB
+        # words built in 35 ms and 400 queries in 10 ms of CPU, against 18 s and 1.2 s as Python.
+        # 0.60 is the first release with numpy 2.0 support.
+        "numba>=0.60,<1",
         # Pose graph optimisation (Pose2/Pose3, LM, robust kernels), see bench/bench_optimizers.py.
         "gtsam>=4.2,<4.4",
         # ROS 1 / ROS 2 bag reading and writing without a ROS install.

@@ -17,6 +17,18 @@ are included for transfer and retrieval to act.
 
     python bench/bench_detect.py [--quick] [--n 3000] [--time-thresholds 0.7 0 0.1 0.05 0.02]
 
+Issue 50 mode, long runs (``--long 10000 25000``): ``rtabmap-ros2 detect`` itself (a subprocess,
+as a user runs it) over ``../shared/tools/make_sequence.py`` images of a seed no other bench uses
+(``--long-seed``, default 61; ``--long-size``, default 320x240), T_time 0.7 s
+(``memory.time_threshold_ms=700``). Reported per run: max, p95 and median process time, frames over
+T_time, WM and vocabulary size (last and largest), transfers, peak RSS of the process (wait4), the
+machine's load, and the steps of the slowest frames (from the database's statistics table)
+(-> ``long_runs`` in ``results/detect.json``, the T_time sweep's runs kept). Target: max process
+time <= 0.7 s. ``--long-report-only`` summarises the runs' outputs as they are (one still running
+or stopped: the frames done so far), running nothing.
+
+    nice -n 10 python bench/bench_detect.py --long 10000 25000 [--data DIR] [--long-report-only]
+
 Issue 12 modes (T_time 0.7 s, one sequence per seed of ``--seeds``, default 7 11 13):
 
 * ``--ablation``: precision / recall at the default T_loop and recall at 100 % precision of the
@@ -415,6 +427,102 @@ def reference_side_by_side(n: int, args: argparse.Namespace) -> int:
     return 0
 
 
+LONG_SEED = 61
+LONG_SIZE = "320x240"
+LONG_T_TIME_MS = 700.0
+MAKE_SEQUENCE = REPO.parent / "shared" / "tools" / "make_sequence.py"
+
+
+def ensure_long_sequence(n: int, data: Path, seed: int, size: str) -> Path:
+    """make_sequence.py's images, written once (``<data>/long_<n>_<seed>_<size>/images``, ``gt.png``)."""
+    width, height = size.split("x")
+    folder = data / f"long_{n}_{seed}_{size}"
+    if not (folder / "COMPLETE").exists():
+        print(f"writing {n} images to {folder} ...", flush=True)
+        subprocess.run([sys.executable, str(MAKE_SEQUENCE), "--out", str(folder), "--frames", str(n),
+                        "--seed", str(seed), "--width", width, "--height", height], check=True)
+        (folder / "COMPLETE").write_text("")
+    return folder
+
+
+def long_summary(out_dir: Path, t_time_ms: float, top: int = TOP_SPIKES) -> dict:
+    """Figures of a detect run from its detections.csv and database statistics (a finished run,
+    or the part done so far of one still running)."""
+    import csv
+    import sqlite3
+
+    rows = [r for r in csv.DictReader(open(out_dir / "detections.csv")) if r["status"] == "ok"]
+    ptime = np.array([float(r["process_time_ms"]) for r in rows])
+    wm = [int(r["wm_size"]) for r in rows]
+    words = [int(r["vocabulary_size"]) for r in rows]
+    with sqlite3.connect(f"file:{out_dir / 'database.db'}?mode=ro", uri=True) as db:
+        stats = [json.loads(d) for (d,) in db.execute("SELECT data FROM statistics")]
+    stats.sort(key=lambda r: -r["process_time_ms"])
+    return {"frames": len(rows), "ptime_max_ms": round(float(ptime.max()), 1),
+            "ptime_p95_ms": round(float(np.percentile(ptime, 95)), 1),
+            "ptime_median_ms": round(float(np.median(ptime)), 1),
+            "frames_over_t_time": int((ptime > t_time_ms).sum()),
+            "wm_size_last": wm[-1], "wm_size_max": max(wm), "vocabulary_last": words[-1],
+            "vocabulary_max": max(words), "transferred": int(sum(int(r["transferred"]) for r in rows)),
+            "retrieved": int(sum(int(r["retrieved"]) for r in rows)),
+            "slowest": [{"frame": r["frame_index"] + 1, "ptime_ms": round(r["process_time_ms"], 1),
+                         "wm_size": r["wm_size"], "vocabulary_size": r["vocabulary_size"],
+                         "transferred": r["transferred"], "retrieved": r["retrieved"],
+                         "steps_ms": {k[5:-3]: round(v, 1) for k, v in r.items()
+                                      if k.startswith("time_") and v >= 1.0}} for r in stats[:top]]}
+
+
+def long_runs(args: argparse.Namespace) -> int:
+    """Issue 50 item 5: ``rtabmap-ros2 detect`` over --long images each, T_time 0.7 s."""
+    import resource
+
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / "detect.json"
+    runs = []
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))))
+    for n in args.long:
+        folder = ensure_long_sequence(n, args.data, args.long_seed, args.long_size)
+        out_dir = args.data / f"detect_long_{n}_{args.long_seed}"
+        if args.long_report_only:
+            run = {"images": n, "seed": args.long_seed, "partial": True, **long_summary(out_dir, LONG_T_TIME_MS)}
+            print(json.dumps(run, indent=1))
+            continue
+        command = [sys.executable, "-m", "rtabmap_ros2.cli.cli", "detect", str(folder / "images"),
+                   "--out", str(out_dir), "--set", f"memory.time_threshold_ms={LONG_T_TIME_MS:g}",
+                   "--ground-truth", str(folder / "gt.png"), "--no-progress"]
+        t0 = time.perf_counter()
+        load_before = os.getloadavg()
+        with open(args.data / f"detect_long_{n}.log", "w") as log:
+            process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+            _, status, usage = os.wait4(process.pid, 0)
+            process.returncode = os.waitstatus_to_exitcode(status)
+        if process.returncode != 0:
+            print(f"{' '.join(command)} failed ({process.returncode}): see {log.name}", file=sys.stderr)
+            return 1
+        run = {"images": n, "seed": args.long_seed, "size": args.long_size, "t_time_ms": LONG_T_TIME_MS,
+               "wall_s": round(time.perf_counter() - t0, 1),
+               "peak_rss_mb": round(usage.ru_maxrss / 1024.0, 1),  # KiB on Linux
+               "cpu_s": round(usage.ru_utime + usage.ru_stime, 1),
+               "load_avg_before": load_before, "load_avg_after": os.getloadavg(),
+               **long_summary(out_dir, LONG_T_TIME_MS)}
+        run["max_met"] = run["ptime_max_ms"] <= LONG_T_TIME_MS
+        runs.append(run)
+        print(f"{n} images: max {run['ptime_max_ms']:.0f} ms, p95 {run['ptime_p95_ms']:.0f} ms, median "
+              f"{run['ptime_median_ms']:.0f} ms, {run['frames_over_t_time']} over T_time; WM {run['wm_size_last']} "
+              f"(max {run['wm_size_max']}), vocabulary {run['vocabulary_last']} (max {run['vocabulary_max']}); "
+              f"peak RSS {run['peak_rss_mb']:.0f} MB; {run['wall_s']:.0f} s wall, load "
+              f"{run['load_avg_after'][0]:.1f}", flush=True)
+        for spike in run["slowest"]:
+            print(f"  frame {spike['frame']}: {spike['ptime_ms']:.0f} ms, WM {spike['wm_size']}, "
+                  f"transferred {spike['transferred']}, steps {spike['steps_ms']}", flush=True)
+        report = json.loads(path.read_text()) if path.exists() else {}
+        report["long_runs"] = {"cpu_count": os.cpu_count(), "runs": runs}
+        path.write_text(json.dumps(report, indent=1))
+    if runs:
+        print(f"-> {path}")
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help=f"{QUICK_IMAGES} images, fewer T_time values")
@@ -439,11 +547,19 @@ def main() -> int:
                         help="--ablation: table of the runs kept beside the images, running none")
     parser.add_argument("--rerun", action="store_true",
                         help="--ablation, --reference: do not reuse our runs kept beside the images")
+    parser.add_argument("--long", type=int, nargs="+", default=None, metavar="N",
+                        help="issue 50: rtabmap-ros2 detect over N make_sequence images each (e.g. 10000 25000)")
+    parser.add_argument("--long-seed", type=int, default=LONG_SEED, help=f"--long: sequence seed (default {LONG_SEED})")
+    parser.add_argument("--long-size", default=LONG_SIZE, help=f"--long: WIDTHxHEIGHT (default {LONG_SIZE})")
+    parser.add_argument("--long-report-only", action="store_true",
+                        help="--long: summarise the runs' outputs so far (partial ones too), running nothing")
     parser.add_argument("--single", type=float, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--set", action="append", default=[], help=argparse.SUPPRESS)
     parser.add_argument("--cached-features", action="store_true",
                         help="T_time sweep: features extracted once per image (features.npz beside the images)")
     args = parser.parse_args()
+    if args.long:
+        return long_runs(args)
     n = args.n or (QUICK_IMAGES if args.quick else FULL_IMAGES)
     if args.single is not None:
         folder = ensure_sequence(n, args.data, args.seeds[0])

@@ -5,12 +5,10 @@ Each sample: RSS and its split (``process_memory.memory_breakdown_mb``), the voc
 the inverted index's words held by two or more locations and their location entries, the links
 in RAM (those touching STM/WM) and the gtsam objects cached for them, and the kept poses. With
 ``--trim``, glibc's ``malloc_trim(0)`` runs at each sample and RSS is given before and after it
-(how much of RSS is freed memory glibc holds). With ``--clone-ivf`` (needs ``--trim``), the
-vocabulary's faiss IVF is then replaced by a copy of itself and RSS is given after a second trim
-(how much spare list capacity the IVF holds after its adds and removes).
+(how much of RSS is freed memory glibc holds).
 
 Usage: ``python bench/bench_memory_growth.py --data DIR [--wm 1500] [--every 300] [--trim]
-[--clone-ivf] [--out FILE.json]`` (DIR: ``rtabmap-ros2 simulate --sessions 10``).
+[--out FILE.json]`` (DIR: ``rtabmap-ros2 simulate --sessions 10``).
 """
 
 from __future__ import annotations
@@ -21,7 +19,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-import faiss
 from process_memory import memory_breakdown_mb, rss_mb
 from rtabmap_ros2.cli.cmd_map import map_datasets
 from rtabmap_ros2.core import optimizer
@@ -42,30 +39,14 @@ def sample(rtabmap: Rtabmap, frame: int, wm_size: int) -> dict:
             "kept_poses": len(rtabmap.local.kept_poses)}
 
 
-def clone_ivf(vocabulary) -> bool:
-    """Replace the vocabulary's faiss IVF by a copy of itself (lists at their size, no spare
-    capacity); False when it has no IVF."""
-    vocabulary.join_training()
-    index = vocabulary._ivf
-    if index is None:
-        return False
-    binary = isinstance(index, faiss.IndexBinary)
-    vocabulary._ivf = faiss.clone_binary_index(index) if binary else faiss.clone_index(index)
-    return True
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, required=True, help="folder of session bags (session_1, ...)")
     parser.add_argument("--wm", type=int, default=1500, help="WM size (Rtabmap/MemoryThr)")
     parser.add_argument("--every", type=int, default=300, help="frames between samples")
     parser.add_argument("--trim", action="store_true", help="malloc_trim(0) at each sample (glibc)")
-    parser.add_argument("--clone-ivf", action="store_true",
-                        help="with --trim: replace the IVF by a copy of itself at each sample, then trim again")
     parser.add_argument("--out", type=Path, default=None, help="results JSON")
     args = parser.parse_args()
-    if args.clone_ivf and not args.trim:
-        parser.error("--clone-ivf needs --trim")
     params = (Params.from_yaml(default_config_path()).with_value("memory.time_threshold_ms", 0)
               .with_value("memory.max_wm_size", args.wm))
     bags = sorted((b for b in args.data.iterdir() if b.is_dir() and b.name.startswith("session_")),
@@ -81,16 +62,13 @@ def main() -> int:
             if args.trim:
                 release_free_heap()
                 row["rss_mb_after_trim"] = round(rss_mb(), 1)
-                if args.clone_ivf and clone_ivf(rtabmap.memory.vocabulary):
-                    release_free_heap()
-                    row["rss_mb_after_ivf_clone_trim"] = round(rss_mb(), 1)
             samples.append(row)
             print(json.dumps(row), flush=True)
 
         map_datasets(rtabmap, [(b.name, BagDataset(b, sync=params.sync)) for b in bags], progress=False,
                      on_statistics=on_stats, print_line=lambda line: print(line, flush=True))
     result = {"data": str(args.data), "wm": args.wm, "every": args.every, "trim": args.trim,
-              "clone_ivf": args.clone_ivf, "samples": samples}
+              "samples": samples}
     if args.out:
         args.out.write_text(json.dumps(result, indent=1))
         print(f"wrote {args.out}")

@@ -151,7 +151,7 @@ def loop_pair(folder: Path, params: Params, undistort: bool = False) -> dict:
     the frames."""
     camera = _pair_camera(folder)
     extractor = FeatureExtractor(params.features)
-    vocabulary = Vocabulary(params.vocabulary, extractor.binary, background_training=False)
+    vocabulary = Vocabulary(params.vocabulary, extractor.binary, background_rebuild=False)
     frames, signatures = {}, {}
     for node, which in ((1, "prev"), (2, "curr")):
         rgb, depth, pose = frames[which] = _read_frame(folder, which)

@@ -10,7 +10,7 @@ Compared, in the same run, one thread:
 
 * baseline: faiss ``IndexBinaryFlat`` (exact) with the NNDR test;
 * ``Vocabulary(index=flat)``: exact brute force over the word buffer;
-* ``Vocabulary(index=ivf)`` for IVF lists = c * sqrt(words), c in {1, 2, 4}, nprobe 8/16/32/64;
+* ``Vocabulary(index=kdtree)``: FLANN's randomized kd-trees (4 trees, 32 checks; the default);
 * the paper's baseline: rebuilding a FLANN index (LSH, binary) over all words, at 200 k.
 
 Reported: query ms (median over query frames), add 400 / remove 400 ms, agreement of the
@@ -19,16 +19,11 @@ the exact search matches; ``recall``: share of those given the same word), and `
 
 Growth run (``growth_frames``): the mapper's per-frame cost. Frames of 400 GFTT+ORB descriptors
 (alternately new views and revisits) are quantised from 0 to ~100 k words; reported: max, p99 and
-median ``quantize`` ms per frame, for background IVF builds (``background_training=True``) against
-the old synchronous build (baseline) in the same run, for ``ivf_min_words`` 20 k / 10 k / 5 k, and
-with the frame loop's faiss OpenMP threads at 1 and at the library default (all cores).
+median ``quantize`` ms per frame, for the exact search, the kd-trees rebuilt in the frame that
+doubles them (RTAB-Map's) and rebuilt in the background (the default).
 
-Switch size (``switch_size``): at 5 k / 10 k / 20 k / 40 k words, query ms of 400 descriptors with
-the exact flat index vs the IVF trained at that size (nprobe 32), and the IVF's agreement with
-exact search, to choose ``ivf_min_words`` once training is off the critical path.
-
-Usage: ``python bench/bench_vocabulary.py [--quick] [--growth-only]`` (quick: 20 k words only,
-fewer configs; growth-only: skip the index tables). Writes ``bench/results/vocabulary.json``.
+Usage: ``python bench/bench_vocabulary.py [--quick] [--growth-only]`` (quick: 20 k words only;
+growth-only: skip the index tables). Writes ``bench/results/vocabulary.json``.
 """
 
 from __future__ import annotations
@@ -48,7 +43,6 @@ import faiss
 import numpy as np
 import skimage.data
 
-from rtabmap_ros2.core import vocabulary as vocabulary_module
 from rtabmap_ros2.core.features import FeatureExtractor
 from rtabmap_ros2.core.params import FeatureParams, VocabularyParams
 from rtabmap_ros2.core.vocabulary import Vocabulary
@@ -62,8 +56,6 @@ FEATURES_PER_FRAME = 1000
 QUERY_SIZE = 400
 QUERY_FRAMES = 16
 REPEATS = 15
-NPROBES = (8, 16, 32, 64)
-LISTS_PER_SQRT = (1.0, 2.0, 4.0)
 FLANN_INDEX_LSH = 6
 FLANN_LSH = dict(algorithm=FLANN_INDEX_LSH, table_number=12, key_size=20, multi_probe_level=2)
 
@@ -116,7 +108,7 @@ def warped_frames(photos, rng: np.random.Generator, views: list | None = None):
 
 def grow_vocabulary(frames, extractor, target_sizes):
     """Quantise frames (each one a location) until each target size; yield (size, snapshot, stats)."""
-    vocab = Vocabulary(VocabularyParams(), binary=True, background_training=False)
+    vocab = Vocabulary(VocabularyParams(), binary=True, background_rebuild=False)
     times, location = [], 0
     targets = list(target_sizes)
     while targets:
@@ -197,34 +189,23 @@ def bench_size(size, ids, words, queries, extra, quick) -> list[dict]:
                      agreement=1.0, match_rate=match_rate, match_recall=1.0))
     print_row(rows[-1])
 
-    configs = [("flat", 0.0, (0,))]
-    factors = (2.0,) if quick else LISTS_PER_SQRT
-    configs += [("ivf", c, NPROBES) for c in factors]
-    default_factor = vocabulary_module.IVF_LISTS_PER_SQRT
-    for kind, factor, nprobes in configs:
-        if kind == "ivf":
-            # Bench-only: vary the module's nlist rule (the class reads it at training time).
-            vocabulary_module.IVF_LISTS_PER_SQRT = factor
+    for kind in ("flat", "kdtree"):
         vocab = Vocabulary(replace(VocabularyParams(), index=kind), binary=True, next_word_id=int(ids.max()) + 1,
-                           background_training=False)
+                           background_rebuild=False)
         t0 = time.perf_counter()
-        vocab.add_words(ids, words)  # index="ivf": trains once on all words
+        vocab.add_words(ids, words)
+        vocab.match(queries[0][:1])  # kdtree: the words enter the trees (a build) at the first search
         build_s = time.perf_counter() - t0
-        for nprobe in nprobes:
-            if kind == "ivf":
-                vocab._ivf.nprobe = nprobe  # bench-only: avoid retraining per nprobe
-            decisions = [vocab.match(q) for q in queries]
-            agreement = float(np.mean(np.concatenate(decisions) == np.concatenate(exact)))
-            matched = np.concatenate(exact) >= 0
-            recall = float(np.mean(np.concatenate(decisions)[matched] == np.concatenate(exact)[matched]))
-            query_ms = float(np.median([median_ms(lambda q=q: vocab.match(q), 3) for q in queries]))
-            add_ms, remove_ms = add_remove_ms(vocab, extra)
-            lists = vocab._ivf.nlist if kind == "ivf" else 0
-            rows.append(dict(words=size, index=f"Vocabulary {kind}", lists=int(lists), nprobe=nprobe,
-                             build_s=build_s, query_ms=query_ms, add_ms=add_ms, remove_ms=remove_ms,
-                             agreement=agreement, match_rate=match_rate, match_recall=recall))
-            print_row(rows[-1])
-    vocabulary_module.IVF_LISTS_PER_SQRT = default_factor
+        decisions = [vocab.match(q) for q in queries]
+        agreement = float(np.mean(np.concatenate(decisions) == np.concatenate(exact)))
+        matched = np.concatenate(exact) >= 0
+        recall = float(np.mean(np.concatenate(decisions)[matched] == np.concatenate(exact)[matched]))
+        query_ms = float(np.median([median_ms(lambda q=q: vocab.match(q), 3) for q in queries]))
+        add_ms, remove_ms = add_remove_ms(vocab, extra)
+        rows.append(dict(words=size, index=f"Vocabulary {kind}", lists=0, nprobe=0,
+                         build_s=build_s, query_ms=query_ms, add_ms=add_ms, remove_ms=remove_ms,
+                         agreement=agreement, match_rate=match_rate, match_recall=recall))
+        print_row(rows[-1])
     return rows
 
 
@@ -284,17 +265,12 @@ def bench_scores(vocab: Vocabulary, frames, extractor, n_locations: int) -> dict
 
 GROWTH_WORDS = 100_000
 GROWTH_FRAMES = 600  # descriptor frames prepared (enough to reach GROWTH_WORDS)
-# (label, background_training, ivf_min_words, OpenMP threads of the frame's faiss calls: 0 = library
-# default, all cores; set through vocabulary.SEARCH_THREADS)
+# (label, vocabulary.index, kd-trees rebuilt in the background)
 GROWTH_CONFIGS = (
-    ("sync build, min 20k, 1 thread (baseline)", False, 20_000, 1),
-    ("background build, min 20k, 1 thread", True, 20_000, 1),
-    ("background build, min 10k, 1 thread", True, 10_000, 1),
-    ("background build, min 5k, 1 thread", True, 5_000, 1),
-    ("sync build, min 20k, default threads", False, 20_000, 0),
-    ("background build, min 20k, default threads", True, 20_000, 0),
+    ("exact search (flat)", "flat", False),
+    ("kdtree, rebuilt in the frame (RTAB-Map)", "kdtree", False),
+    ("kdtree, rebuilt in the background", "kdtree", True),
 )
-SWITCH_SIZES = (5_000, 10_000, 20_000, 40_000)
 
 
 def growth_descriptors(photos, extractor) -> list[np.ndarray]:
@@ -312,85 +288,25 @@ def growth_descriptors(photos, extractor) -> list[np.ndarray]:
     return out
 
 
-def growth_frames(frames: list[np.ndarray], background: bool, min_words: int, threads: int,
-                  default_threads: int) -> dict:
+def growth_frames(frames: list[np.ndarray], index: str, background: bool) -> dict:
     """Per-frame quantize ms while the vocabulary grows from 0 to GROWTH_WORDS words."""
-    faiss.omp_set_num_threads(threads or default_threads)
-    vocabulary_module.SEARCH_THREADS = threads  # bench-only: 0 leaves the library default
-    vocab = Vocabulary(replace(VocabularyParams(), ivf_min_words=min_words), binary=True,
-                       background_training=background)
-    times, switch_frame = [], -1
+    vocab = Vocabulary(replace(VocabularyParams(), index=index), binary=True, background_rebuild=background)
+    times = []
     for location, descriptors in enumerate(frames, 1):
         t0 = time.perf_counter()
         word_ids, _ = vocab.quantize(descriptors)
         times.append(time.perf_counter() - t0)
         vocab.add_references(location, word_ids)
-        if switch_frame < 0 and vocab.uses_ivf:
-            switch_frame = location
         if len(vocab) >= GROWTH_WORDS:
             break
+    rebuilds = vocab._kdtree.rebuilds if vocab._kdtree is not None else 0
     vocab.close()
-    faiss.omp_set_num_threads(1)
-    vocabulary_module.SEARCH_THREADS = 1
     ms = 1e3 * np.asarray(times)
     slowest = np.argsort(ms)[::-1][:5]
-    return dict(frames=len(times), words=len(vocab), ivf_from_frame=switch_frame,
+    return dict(frames=len(times), words=len(vocab), rebuilds=rebuilds,
                 quantize_ms_max=float(ms.max()), quantize_ms_p99=float(np.percentile(ms, 99)),
                 quantize_ms_median=float(np.median(ms)), frames_over_100ms=int((ms > 100).sum()),
                 slowest=[(int(i) + 1, round(float(ms[i]), 1)) for i in slowest])
-
-
-def switch_size(frames: list[np.ndarray]) -> list[dict]:
-    """Flat vs IVF (trained at that size, nprobe 32) query ms and agreement at SWITCH_SIZES words."""
-    nndr = VocabularyParams().nndr
-    queries = frames[-QUERY_FRAMES:]
-    rows = []
-    flat = Vocabulary(replace(VocabularyParams(), index="flat"), binary=True)
-    sizes = list(SWITCH_SIZES)
-    for descriptors in frames[:-QUERY_FRAMES]:
-        flat.quantize(descriptors)
-        if not sizes or len(flat) < sizes[0]:
-            continue
-        size = sizes.pop(0)
-        ids = flat.word_ids()
-        words = flat.descriptors_of(ids)
-        ivf = Vocabulary(replace(VocabularyParams(), index="auto", ivf_min_words=min(size, len(ids))),
-                         binary=True, next_word_id=int(ids.max()) + 1, background_training=False)
-        t0 = time.perf_counter()
-        ivf.add_words(ids, words)
-        build_s = time.perf_counter() - t0
-        exact = np.concatenate([exact_decisions(words, ids, q, nndr) for q in queries])
-        decided = np.concatenate([ivf.match(q) for q in queries])
-        row = dict(words=len(ids), lists=int(ivf._ivf.nlist), nprobe=int(ivf._ivf.nprobe), build_s=build_s,
-                   flat_query_ms=float(np.median([median_ms(lambda q=q: flat.match(q), 3) for q in queries])),
-                   ivf_query_ms=float(np.median([median_ms(lambda q=q: ivf.match(q), 3) for q in queries])),
-                   agreement=float(np.mean(decided == exact)), match_rate=float(np.mean(exact >= 0)))
-        rows.append(row)
-        print(f"{row['words']:>7} {row['lists']:>5} {row['nprobe']:>6} {row['build_s']:>7.2f} "
-              f"{row['flat_query_ms']:>13.2f} {row['ivf_query_ms']:>12.2f} {row['agreement']:>9.4f} "
-              f"{row['match_rate']:>6.2f}", flush=True)
-    return rows
-
-
-def background_progress(frames: list[np.ndarray]) -> dict:
-    """Does the main thread keep running while a build trains? Flat queries during vs before it."""
-    vocab = Vocabulary(replace(VocabularyParams(), index="auto", ivf_min_words=80_000), binary=True)
-    for descriptors in frames:
-        if len(vocab) >= 79_000:
-            break
-        vocab.quantize(descriptors)
-    query = frames[-1]
-    idle = [median_ms(lambda: vocab.match(query), 1) for _ in range(10)]
-    vocab.add_words(np.arange(vocab.next_word_id, vocab.next_word_id + 1000),
-                    np.random.default_rng(3).integers(0, 256, (1000, 32), dtype=np.uint8))  # starts the build
-    during, t0 = [], time.perf_counter()
-    while vocab.training and not vocab._build.done.is_set():
-        during.append(median_ms(lambda: vocab.match(query), 1))
-    build_s = time.perf_counter() - t0
-    vocab.join_training()
-    return dict(words=len(vocab), build_s=build_s, queries_during_build=len(during),
-                flat_query_ms_idle=float(np.median(idle)),
-                flat_query_ms_during_build=float(np.median(during)) if during else None)
 
 
 def rss_mb() -> dict:
@@ -410,8 +326,8 @@ def print_row(r: dict) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="20 k words, IVF lists = 2 sqrt(n) only")
-    parser.add_argument("--growth-only", action="store_true", help="growth run and switch size only")
+    parser.add_argument("--quick", action="store_true", help="20 k words only")
+    parser.add_argument("--growth-only", action="store_true", help="growth run only")
     args = parser.parse_args(argv)
     default_threads = faiss.omp_get_max_threads()
     faiss.omp_set_num_threads(1)  # the node runs one quantisation at a time, on a shared machine
@@ -422,29 +338,22 @@ def main(argv=None) -> int:
     frames = growth_descriptors(photos, extractor)
     print(f"growth run: {QUERY_SIZE} descriptors per frame up to {GROWTH_WORDS} words "
           f"(default OpenMP threads: {default_threads})")
-    print(f"{'configuration':<45} {'frames':>6} {'ivf@':>5} {'max_ms':>8} {'p99_ms':>8} {'median':>7} {'>100ms':>6}")
+    print(f"{'configuration':<45} {'frames':>6} {'rebuilds':>8} {'max_ms':>8} {'p99_ms':>8} {'median':>7} {'>100ms':>6}")
     growth_runs = []
-    for label, background, min_words, threads in GROWTH_CONFIGS:
-        run = growth_frames(frames, background, min_words, threads, default_threads)
-        run.update(config=label, background_training=background, ivf_min_words=min_words,
-                   threads=threads or default_threads)
+    for label, index, background in GROWTH_CONFIGS:
+        run = growth_frames(frames, index, background)
+        run.update(config=label, index=index, background_rebuild=background)
         growth_runs.append(run)
-        print(f"{label:<45} {run['frames']:>6} {run['ivf_from_frame']:>5} {run['quantize_ms_max']:>8.1f} "
+        print(f"{label:<45} {run['frames']:>6} {run['rebuilds']:>8} {run['quantize_ms_max']:>8.1f} "
               f"{run['quantize_ms_p99']:>8.1f} {run['quantize_ms_median']:>7.1f} {run['frames_over_100ms']:>6}"
               f"  slowest {run['slowest'][:3]}", flush=True)
-    progress = background_progress(frames)
-    print(f"main thread during a background build: {progress}")
-    print(f"\nswitch size: flat vs IVF trained at that size\n{'words':>7} {'lists':>5} {'nprobe':>6} "
-          f"{'build_s':>7} {'flat_query_ms':>13} {'ivf_query_ms':>12} {'agreement':>9} {'match':>6}")
-    switch = switch_size(frames)
     if args.growth_only:
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
         RESULTS.write_text(json.dumps(dict(
             machine=dict(python=sys.version.split()[0], faiss=faiss.__version__, opencv=cv2.__version__,
                          processor=platform.processor(), default_threads=default_threads,
                          load_average=list(os.getloadavg())),
-            growth_only=True, query_size=QUERY_SIZE, growth_runs=growth_runs, background_progress=progress,
-            switch_size=switch), indent=2))
+            growth_only=True, query_size=QUERY_SIZE, growth_runs=growth_runs), indent=2))
         print(f"total {time.perf_counter() - t_start:.0f} s; wrote {RESULTS}")
         return 0
     query_rng = np.random.default_rng(99)
@@ -466,7 +375,7 @@ def main(argv=None) -> int:
         stats.update(words=size, **rss_mb())
         growth.append(stats)
         print(f"\nvocabulary grown to {size} words in {stats['frames']} frames: quantize median "
-              f"{stats['quantize_ms_median']:.1f} ms, max {stats['quantize_ms_max']:.0f} ms (IVF training)")
+              f"{stats['quantize_ms_median']:.1f} ms, max {stats['quantize_ms_max']:.0f} ms")
         print(header)
         rows += bench_size(size, ids, words, queries, extra, args.quick)
         if size == sizes[-1]:
@@ -485,7 +394,7 @@ def main(argv=None) -> int:
                      processor=platform.processor(), threads=1, default_threads=default_threads,
                      load_average=list(os.getloadavg())),
         quick=args.quick, query_size=QUERY_SIZE, query_frames=QUERY_FRAMES, growth_runs=growth_runs,
-        background_progress=progress, switch_size=switch, growth=growth,
+        growth=growth,
         rows=rows, scores=scores, memory=memory), indent=2))
     print(f"wrote {RESULTS}")
     return 0

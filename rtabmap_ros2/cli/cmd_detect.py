@@ -23,7 +23,7 @@ COLUMNS = ("image", "location_id", "loop_closure_id", "highest_hypothesis_id", "
            "process_time_ms", "total_time_ms", "wm_size", "vocabulary_size",
            "stm_size", "ltm_size", "retrieved", "transferred", "merged_id", "rejected_loop_closure_id",
            "words_added", "status", "words_extracted", "rehearsal_similarity", "new_location_probability",
-           "likelihood_nonzero", "likelihood_mean", "likelihood_max")
+           "likelihood_nonzero", "likelihood_mean", "likelihood_max", "likelihood_std")
 STATUS_OK, STATUS_BAD, STATUS_UNREADABLE, STATUS_REJECTED = "ok", "bad_signature", "unreadable", "rejected"
 
 EPILOG = """\
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
                 else:
                     row.update({k: v for k, v in stats.to_dict().items() if k in row and k != "image"})
                     for name in ("highest_hypothesis_value", "rehearsal_similarity", "new_location_probability",
-                                 "likelihood_mean", "likelihood_max"):
+                                 "likelihood_mean", "likelihood_max", "likelihood_std"):
                         row[name] = round(float(row[name]), 6)
                     row["process_time_ms"] = round(stats.process_time_ms, 3)
                     row["total_time_ms"] = round(stats.total_time_ms, 3)

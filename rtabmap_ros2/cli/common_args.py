@@ -71,7 +71,7 @@ def params_for_database(args: argparse.Namespace, database) -> tuple[Params, str
     params, origin = None, ""
     if stored:
         try:
-            params, origin = Params.from_mapping(stored), "those stored with the database (the ones it was mapped with)"
+            params, origin = Params.from_stored(stored), "those stored with the database (the ones it was mapped with)"
         except ParameterError as exc:
             log.warning("the parameters stored with %s cannot be read by this version (%s): using the shipped "
                         "config instead", database, exc)

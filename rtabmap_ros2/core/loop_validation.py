@@ -84,14 +84,10 @@ class LoopValidator:
     def accepts(self, sig: Signature, hypothesis: Hypothesis, previous_value: float, stats: Statistics) -> bool:
         """Hypothesis selection (§III-D) and RTAB-Map's validation of the selected hypothesis
         (Rtabmap.cpp, in this order: T_loop and more than one hypothesis, Rtabmap/LoopRatio,
-        epipolar geometry when VhEp/Enabled), with, before the epipolar check, this frame's
-        evidence for it (``bayes.min_evidence_ratio``, not in RTAB-Map). A hypothesis the evidence
-        or the epipolar check rejects is recorded in ``stats.rejected_loop_closure_id``.
+        epipolar geometry when VhEp/Enabled). A hypothesis the epipolar check rejects is recorded in
+        ``stats.rejected_loop_closure_id``.
         ``previous_value``: the previous frame's highest hypothesis value (Rtabmap/LoopRatio)."""
         if not self.bayes.accepted(hypothesis, previous_value):
-            return False
-        if not self.bayes.supported_by_observation(hypothesis.location_id):
-            stats.rejected_loop_closure_id = hypothesis.location_id
             return False
         p = self.params.bayes
         if not p.epipolar_verification:

@@ -16,6 +16,7 @@ Unknown names raise :class:`~rtabmap_ros2.errors.ParameterError`; YAML is read w
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass, field, fields, replace
@@ -57,6 +58,19 @@ class FeatureParams:
     response_threshold: float = _p(
         0.0, "T_response: minimum detector response of a feature (detector-specific scale)"
     )
+    describable_corners_only: bool = _p(
+        True, "gftt_orb: look for corners only where ORB can describe them (not within ORB/EdgeThreshold, 19 px, "
+        "of the border), so that T_maxFeatures counts described features. Not in RTAB-Map, whose GFTT keeps the "
+        "strongest corners of the whole image and ORB then drops those in the band: a third of a 240x192 image's "
+        "area, 277 of 400 words on Lip6Outdoor. Issue 48's ablation (bench/bench_lcd.py): RTAB-Map's 84 images "
+        "0.909 / 0.500 with one false loop closure -> 0.955 / 1.000 (recall / at 100 % precision), Lip6Outdoor "
+        "recall 0.748 -> 0.775; worst set make_sequence 240x192, precision 0.912 -> 0.895")
+    roll_normalization: bool = _p(
+        True, "Not in RTAB-Map: bring an image's edges upright before detection when the camera rolled "
+        "5-30 degrees (a hand-held camera; core/features.py estimate_roll), so that upright descriptors still "
+        "match. Lip6Outdoor's third walk is held rolled 15-25 degrees: recall at 100 % precision 0.761 -> 0.815 "
+        "(upscaled 2x 0.745 -> 0.861), RTAB-Map's 84 images unchanged; worst set make_sequence 240x192, "
+        "precision 0.905 -> 0.895 (issue 48's ablation, bench/bench_lcd.py)")
     roi_ratios: tuple[float, float, float, float] = _p(
         (0.0, 0.0, 0.0, 0.0),
         "Region of interest as ratios of the image cut off at left, right, top, bottom "
@@ -84,37 +98,26 @@ class VocabularyParams:
         "Kp/NewWordsComparedTogether): a feature repeated in one image gives one word (config/rtabmap.yaml: false "
         "for SLAM, with bayes.likelihood eq1, measured with bench/bench_slam.py)")
     index: str = _p(
-        "auto",
-        "Nearest-neighbour index: flat (exact brute force), ivf (inverted file, incremental add/"
-        "remove), auto (flat until ivf_min_words words, then ivf), kdtree (RTAB-Map's Kp/NNStrategy 1: FLANN "
-        "randomized kd-trees over binary descriptors' bits, 32 checks, approximate; config/rtabmap_reference.yaml)",
+        "kdtree",
+        "Word search: kdtree (RTAB-Map's Kp/NNStrategy 1: FLANN randomized kd-trees over binary descriptors' "
+        "bits, 32 checks, approximate; float descriptors (features.detector sift) use flat) or flat (exact brute "
+        "force, faiss). Issue 48: the exact search needed a likelihood trim that broke real images",
     )
     kdtree_seed: int = _p(
         0, "kdtree: seed of the trees' random choices (FLANN draws its own on every run, so RTAB-Map itself "
         "is not repeatable: bench/bench_lcd.py --ours-runs compares several seeds with several of its runs)")
-    ivf_min_words: int = _p(
-        10000, "auto: switch from the exact flat index to IVF at this size (bench/bench_vocabulary.py: "
-        "IVF is faster than flat from ~10k words, agreeing with exact search on 99.95 % of decisions)",
-        "words")
-    ivf_nprobe: int = _p(32, "IVF: number of inverted lists visited per query")
-    ivf_retrain_growth: float = _p(
-        4.0, "IVF: retrain the coarse quantiser when the vocabulary grew by this factor since the "
-        "last training", "ratio")
-    ivf_swap_frames: int = _p(
-        300, "IVF: a background (re)build is swapped in this many frames (quantize calls) after it "
-        "started, waiting for it then if needed: the same images give the same words whatever the load. "
-        "Builds take up to ~6 s at 200k words on one thread (bench/bench_vocabulary.py); with 50 frames "
-        "the 3,000-image runs waited for them (max pTime 7-12 s on a loaded machine); meanwhile the "
-        "exact flat index serves", "frames")
+    rebuild_swap_frames: int = _p(
+        300,
+        "kdtree: the trees are rebuilt when they have doubled (Kp/FlannRebalancingFactor 2), in a background "
+        "thread; the rebuild is swapped in this many frames (searches) after it started, and at least one frame "
+        "per 1,000 words it holds (core/kdtree.py SWAP_WORDS_PER_SEARCH: a 1M-word rebuild takes ~8 s of CPU), "
+        "waiting for it then if needed: the same images give the same words whatever the load", "frames")
 
     def __post_init__(self) -> None:
         _check(0.0 < self.nndr <= 1.0, "vocabulary.nndr", self.nndr, "in (0, 1]")
-        _check(self.index in ("auto", "flat", "ivf", "kdtree"), "vocabulary.index", self.index,
-               "auto, flat, ivf or kdtree")
-        _check(self.ivf_min_words >= 1000, "vocabulary.ivf_min_words", self.ivf_min_words, ">= 1000")
-        _check(self.ivf_nprobe >= 1, "vocabulary.ivf_nprobe", self.ivf_nprobe, ">= 1")
-        _check(self.ivf_swap_frames >= 1, "vocabulary.ivf_swap_frames", self.ivf_swap_frames, ">= 1")
-        _check(self.ivf_retrain_growth > 1.0, "vocabulary.ivf_retrain_growth", self.ivf_retrain_growth, "> 1")
+        _check(self.index in ("flat", "kdtree"), "vocabulary.index", self.index,
+               "kdtree or flat (auto and ivf were removed with the IVF word search, issue 50: flat is the exact search)")
+        _check(self.rebuild_swap_frames >= 1, "vocabulary.rebuild_swap_frames", self.rebuild_swap_frames, ">= 1")
 
 
 @dataclass(frozen=True)
@@ -123,13 +126,10 @@ class MemoryParams:
 
     stm_size: int = _p(30, "T_STM: number of locations in Short-Term Memory", "locations")
     rehearsal_similarity: float = _p(
-        0.70, "T_similarity: merge the new location into the previous one if Eq. 1 is above this. RTAB-Map's "
-        "0.6 is for its approximate word search; our exact search makes consecutive images share more words "
-        "(median Eq. 1 0.59 against RTAB-Map's 0.47 on make_sequence seed 31): 0.7 merges as often as RTAB-Map "
-        "at 0.6 (12 % of images against its 11.5 %) and, on make_sequence seeds 31 / 21 / 44, lifted precision "
-        "from 0.952 / 0.965 / 0.957 to 0.973 / 0.970 / 0.967 (recall 0.939 / 0.959 / 0.918 -> 0.946 / 0.955 / "
-        "0.878; RTAB-Map's own images: no merge either way; bench/bench_lcd.py --ablation). The paper's 0.20 "
-        "merged a moving camera's overlapping views", "ratio"
+        0.6, "T_similarity: merge the new location into the previous one if Eq. 1 is above this. RTAB-Map's "
+        "Mem/RehearsalSimilarity 0.6 (the paper's 0.20 merged a moving camera's overlapping views). 0.7, chosen "
+        "with the exact word search, made no set better with the kd-trees: bench/bench_lcd.py's ablation row "
+        "'rehearsal similarity 0.7' (issue 48)", "ratio"
     )
     rehearsal_max_distance: float = _p(
         0.05, "SLAM mode: the camera moved when its neighbour link is longer than this along an axis; "
@@ -218,65 +218,11 @@ class BayesParams:
         "paper and RTAB-Map: 0.9). 0.95 (the default before issue 32, chosen on sim/sequence.py) kept "
         "the value of true revisits under T_loop on real images (bench/bench_lcd.py --ablation)", "probability")
     loop_closure_prior: float = _p(0.9, "Sum of p(S_t>=0 | S_t-1=j) over the neighbourhood of j", "probability")
-    loop_closure_hop: bool = _p(
-        True, "Whether a loop closure link counts as a hop of the transition model's neighbourhood (true: as a "
-        "neighbour link does). false is RTAB-Map's (its BayesFilter's neighbourhoods, Memory::getNeighborsId with "
-        "incrementMarginOnLoop false): a location and the ones it closed a loop with are one place, so the belief "
-        "carried to a revisited place is shared by every visit's chain and compounds less; "
-        "config/rtabmap_reference.yaml's, where it brings make_sequence seed 44's recall down to the reference's "
-        "(bench/bench_transition.py, docs/benchmarks.md). With the defaults false costs recall at 100 % precision on five of seven sets "
-        "(make_sequence 0.382 / 0.256 / 0.156 -> 0.337 / 0.251 / 0.144, the simulator's seed 11 0.925 -> 0.898) "
-        "and recall on make_sequence (0.804 / 0.755 / 0.645 -> 0.791 / 0.751 / 0.608) "
-        "(bench/bench_lcd.py --configs defaults \"no loop closure hop\")")
     likelihood: str = _p(
         "tf_idf", "Raw score of a WM location before Eq. 3-4: tf_idf (RTAB-Map's Kp/TfIdfLikelihoodUsed: "
         "sum over the frame's words of n_wj log10(N / n_w) / n_j, over the inverted index) or eq1 "
         "(the paper's Eq. 1 similarity; config/rtabmap.yaml's for SLAM, where it kept the simulated building's ATE "
         "at 0.015-0.017 m against 0.016-0.046 m with tf_idf, bench/bench_slam.py, issue 32)")
-    likelihood_trim: float = _p(
-        0.5, "Not in RTAB-Map (0 = its Eq. 3-4): the mean and standard deviation of Eq. 3-4 leave out this "
-        "fraction of the highest non-zero scores, the candidates themselves, so that they measure the chance "
-        "level (core/bayes.py likelihood)", "ratio")
-    refine_hops: int = _p(
-        8, "Not in RTAB-Map (0 = off): the highest hypothesis is the location at most this many neighbour links "
-        "from the posterior's peak, along its trajectory, where this frame's likelihood (over bayes.refine_window) "
-        "is highest: the peak lags behind a revisit faster than the first pass. 8: the transition model's reach "
-        "(bayes.sigma 1.6); through loop closure links too it put one of RTAB-Map's 84 real images on a wrong "
-        "place (bench/bench_lcd.py)", "hops")
-    refine_window: int = _p(
-        1, "Not in RTAB-Map: the hypothesis refinement sums a candidate's likelihood with its trajectory "
-        "neighbours' up to this many links on either side (0: its own alone). In an image sequence consecutive "
-        "images overlap and one location's likelihood is noisy at that scale: against 0, recall at 100 % "
-        "precision 0.160 / 0.031 -> 0.356 / 0.254 on make_sequence seeds 31 / 21 (precision up too) and "
-        "0.823 -> 0.858 on sim/sequence.py seed 13, but 0.924 -> 0.382 on its seed 11 (one image put next to "
-        "the right one) and precision -0.001 to -0.002 on its three seeds (bench/bench_lcd.py). "
-        "config/rtabmap.yaml: 0. SLAM nodes are a second apart and a turning camera's neighbours do not "
-        "overlap: with 1, sessions 4-5 of bench_slam.py's seed 5 never merged (the window chose nodes sharing "
-        "too few words for RANSAC)", "links")
-    align_radius: float = _p(
-        0.1, "Not in RTAB-Map (0 = off): the highest hypothesis then moves, within bayes.refine_hops neighbour "
-        "links along its trajectory, to the location whose image shows this frame's view most in place: the words "
-        "found once in both that agree on one shift between the two images, within this fraction of the image's "
-        "width, weighted by the part of the frame the two views share at that shift (core/signature.py "
-        "aligned_words; moved only to a view scoring 7 or more). Words alone cannot tell two overlapping "
-        "views of a place apart, their positions can", "ratio of image width")
-    min_evidence_ratio: float = _p(
-        0.5, "Not in RTAB-Map (0 = off): a hypothesis reaching T_loop is accepted only when this frame's "
-        "likelihood of it, or of a graph neighbour, is at least this ratio of the new location's: the "
-        "current image must itself favour the place, not only the belief carried from earlier frames (a "
-        "revisit that ended, a weak match repeated while the camera stands still). Nor is it accepted when the "
-        "image's likelihood stands out (Eq. 3) on other locations but not on it or a neighbour: at a jump to "
-        "another street right after a revisit, make_sequence's new location likelihood is often 2 or below and "
-        "the ratio alone passed the old place (bench/bench_lcd.py)", "ratio")
-    discount_repeated_evidence: bool = _p(
-        True, "Not in RTAB-Map (false = off): a frame's likelihood counts in the filter as 1 - s of an "
-        "observation, s its Eq. 1 similarity with the previous frame (core/bayes.py discounted), so that a "
-        "camera standing still does not compound one weak match frame after frame. On sim/sequence.py "
-        "seeds 7 / 11 / 13 precision 0.886 / 0.972 / 0.889 -> 0.980 / 0.991 / 0.987; on make_sequence "
-        "seeds 31 / 21 / 44 precision 0.979 / 0.974 / 0.962 -> 0.997 / 0.982 / 0.965, recall at "
-        "100 % precision 0.558 / 0.418 / 0.020 -> 0.356 / 0.254 / 0.009 and recall "
-        "0.952 / 0.958 / 0.872 -> 0.803 / 0.751 / 0.634 (a revisit's value climbs slower); "
-        "RTAB-Map's 84 images unchanged, SLAM's ATE unchanged (bench/bench_lcd.py, bench/bench_slam.py)")
     loop_ratio: float = _p(
         0.0, "RTAB-Map's Rtabmap/LoopRatio: reject a hypothesis below this ratio of the previous "
         "frame's hypothesis value, or when the previous value was 0 (0 = off, RTAB-Map's default, as here: "
@@ -314,11 +260,6 @@ class BayesParams:
                "in (0, 1)")
         _check(self.likelihood in ("tf_idf", "eq1"), "bayes.likelihood", self.likelihood, "tf_idf or eq1")
         _check(0.0 <= self.loop_ratio <= 1.0, "bayes.loop_ratio", self.loop_ratio, "in [0, 1]")
-        _check(0.0 <= self.likelihood_trim < 1.0, "bayes.likelihood_trim", self.likelihood_trim, "in [0, 1)")
-        _check(self.min_evidence_ratio >= 0.0, "bayes.min_evidence_ratio", self.min_evidence_ratio, ">= 0")
-        _check(self.refine_hops >= 0, "bayes.refine_hops", self.refine_hops, ">= 0")
-        _check(self.refine_window >= 0, "bayes.refine_window", self.refine_window, ">= 0")
-        _check(self.align_radius >= 0.0, "bayes.align_radius", self.align_radius, ">= 0")
         _check(self.epipolar_min_matches >= 8, "bayes.epipolar_min_matches", self.epipolar_min_matches,
                ">= 8 (a fundamental matrix needs 8 pairs)")
         _check(self.epipolar_max_distance > 0.0, "bayes.epipolar_max_distance", self.epipolar_max_distance, "> 0")
@@ -643,6 +584,18 @@ class Params:
         return params
 
     @classmethod
+    def from_stored(cls, values: Mapping[str, Any]) -> "Params":
+        """The parameters a database was made with: as :meth:`from_mapping`, but a parameter removed
+        since (:data:`REMOVED_PARAMETERS`) is left out with a warning, so that an older map still
+        exports, reports and merges."""
+        flat = flatten(_unwrap_ros(values))
+        removed = sorted(name for name in flat if name in REMOVED_PARAMETERS)
+        if removed:
+            logging.getLogger(__name__).warning(
+                "the database's parameters %s no longer exist (made by an older version): left out", ", ".join(removed))
+        return cls.from_mapping({k: v for k, v in flat.items() if k not in REMOVED_PARAMETERS})
+
+    @classmethod
     def from_yaml(cls, path: str | os.PathLike, base: "Params | None" = None) -> "Params":
         """Parameters from a YAML file (plain nested keys, or a ROS 2 parameter file)."""
         import yaml   # here, not at import: 10 ms of every command that reads no YAML (optimize)
@@ -794,8 +747,29 @@ _GRID_SENSORS = {0: "laser", 1: "depth", 2: "both"}
 _DETECTOR_STRATEGIES = {2: "orb", 1: "sift", 8: "gftt_orb"}
 
 
+# Parameters that were removed, with what to do instead: a config file written for an older version
+# gets this rather than "unknown parameter".
+_IVF_REMOVED = "the IVF word search was removed (issue 50): vocabulary.index is kdtree (RTAB-Map's) or flat (exact)"
+REMOVED_PARAMETERS: dict[str, str] = {
+    "vocabulary.ivf_min_words": _IVF_REMOVED + "; delete this key",
+    "vocabulary.ivf_nprobe": _IVF_REMOVED + "; delete this key",
+    "vocabulary.ivf_retrain_growth": _IVF_REMOVED + "; delete this key",
+    "vocabulary.ivf_swap_frames": "renamed vocabulary.rebuild_swap_frames (the kd-trees' background rebuild; "
+                                  "the IVF word search was removed, issue 50)",
+    **{f"bayes.{name}": f"not in RTAB-Map, removed in issue 48 ({what} lost against RTAB-Map on real images, "
+                        "docs/benchmarks.md); delete this key"
+       for name, what in (("likelihood_trim", "the trimmed Eq. 3-4"), ("min_evidence_ratio", "the evidence check"),
+                          ("refine_hops", "the hypothesis refinement"), ("refine_window", "the hypothesis refinement"),
+                          ("align_radius", "the view alignment"),
+                          ("discount_repeated_evidence", "the repeated evidence discount"),
+                          ("loop_closure_hop", "the loop closure hop; RTAB-Map's neighbourhoods are kept"))},
+}
+
+
 def resolve_name(name: str, value: Any) -> tuple[str, Any]:
     """Map any accepted spelling of a parameter to its dotted name, converting the value's unit."""
+    if name in REMOVED_PARAMETERS:
+        raise ParameterError(f"parameter {name!r} no longer exists: {REMOVED_PARAMETERS[name]}")
     if name in RTABMAP_ALIASES:
         dotted, convert = RTABMAP_ALIASES[name]
         try:

@@ -331,13 +331,9 @@ class Rtabmap:
         stats.likelihood_nonzero = int(non_null.size)
         stats.likelihood_mean = float(non_null.mean()) if non_null.size else 0.0
         stats.likelihood_max = float(raw.max()) if raw.size else 0.0
-        # Not in RTAB-Map: a frame overlapping the previous one by Eq. 1 = s brings 1 - s of an
-        # observation (bayes.discount_repeated_evidence, core/bayes.py discounted).
-        weight = 1.0
-        if self.params.bayes.discount_repeated_evidence:
-            weight = 1.0 - min(max(stats.rehearsal_similarity, 0.0), 1.0)
-        self.bayes.update(candidates, likelihood(scores, self.params.bayes.likelihood_trim), weight)
-        hypothesis = self.bayes.aligned(self.bayes.highest(), sig, self.memory.signatures)
+        stats.likelihood_std = float(non_null.std(ddof=1)) if non_null.size > 1 else 0.0
+        self.bayes.update(candidates, likelihood(scores))
+        hypothesis = self.bayes.highest()
         stats.new_location_probability = hypothesis.new_location_probability
         return hypothesis
 

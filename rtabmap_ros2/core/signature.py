@@ -8,7 +8,7 @@ closure refinement and the local occupancy grid need it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
+from typing import Optional
 
 import numpy as np
 
@@ -61,34 +61,6 @@ class Signature:
         ids, first, counts = np.unique(self.word_ids, return_index=True, return_counts=True)
         once = counts == 1
         return ids[once], first[once]
-
-
-def aligned_words(query: Signature, others: Sequence[Signature], radius_px: float) -> list[float]:
-    """For each of ``others``: how much of ``query``'s view it shows in place. The words found once
-    in both vote for the shift between the two images (their keypoints' offsets; the median is the
-    shift); those within ``radius_px`` of it agree, and their count is weighted by the fraction of
-    the frame the two views share at that shift (1 - |shift| / image size, per axis, the image size
-    taken from ``query``'s keypoints). Two overlapping views of a place share many words, but the
-    one shifted by half a frame shows only half of this image: the view closest to ``query``'s
-    scores highest."""
-    extent = np.ptp(query.keypoints, axis=0) if len(query.keypoints) else np.zeros(2)
-    if not np.all(extent > 0):
-        return [0.0] * len(others)
-    mine, mine_index = query.words_found_once()
-    mine_xy = query.keypoints[mine_index]
-    scores = []
-    for other in others:
-        theirs, their_index = other.words_found_once()
-        _, i, j = np.intersect1d(mine, theirs, assume_unique=True, return_indices=True)
-        if not len(i):
-            scores.append(0.0)
-            continue
-        offsets = mine_xy[i] - other.keypoints[their_index[j]]
-        shift = np.median(offsets, axis=0)
-        agreeing = np.count_nonzero(np.hypot(*(offsets - shift).T) <= radius_px)
-        shared_frame = np.prod(np.clip(1.0 - np.abs(shift) / extent, 0.0, 1.0))
-        scores.append(float(agreeing * shared_frame))
-    return scores
 
 
 def similarity(a: dict[int, int], b: dict[int, int]) -> float:

@@ -45,6 +45,7 @@ class Statistics:
     likelihood_nonzero: int = 0  # WM locations with a raw score above 0
     likelihood_mean: float = 0.0  # mean of those raw scores
     likelihood_max: float = 0.0  # largest raw score
+    likelihood_std: float = 0.0  # sample standard deviation of the non-zero raw scores (Eq. 3-4's sigma)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:

@@ -7,48 +7,27 @@ d1 = d2 = 0, matches); otherwise it becomes a new word. A frame's new words are 
 (``new_words_compared_together``, RTAB-Map's Kp/NewWordsComparedTogether): a feature repeated in
 one image gives one word.
 
-The paper rebuilt FLANN kd-trees over the whole vocabulary at every frame, its most expensive
-step. Here the index is incremental (``bench/bench_vocabulary.py`` measured the choice):
+The word search (``vocabulary.index``):
 
-* flat: exact brute force (faiss ``knn_hamming`` / ``knn``) over a contiguous numpy buffer of the
-  words. Removing a word moves the last row into its slot: O(removed), never a rebuild.
-* kdtree: RTAB-Map's own approximate search (FLANN randomized kd-trees over the descriptors' bits,
-  32 checks: ``core/kdtree.py``), binary descriptors only. Slower and less exact than the others; it
-  is what makes ``config/rtabmap_reference.yaml`` behave as RTAB-Map does (issue 32).
-* IVF: a faiss inverted file (``IndexBinaryIVF`` for ORB, ``IndexIVFFlat`` for SIFT) holding the
-  word ids natively, with a hash-table direct map so ``remove_ids`` costs O(removed). Used from
-  ``ivf_min_words`` words on (``index=auto``). Its coarse quantiser is trained on the current words
-  and retrained only when the vocabulary has grown by ``ivf_retrain_growth`` since the last
-  training; between trainings words are added to / removed from the lists incrementally. Once
-  built, the IVF stays in use even if removals shrink the vocabulary below ``ivf_min_words``.
+* kdtree (default): RTAB-Map's own approximate search (``Kp/NNStrategy`` 1: FLANN randomized
+  kd-trees over the descriptors' bits, 32 checks; ``core/kdtree.py``). A frame's new words enter
+  the trees when the next frame searches, as RTAB-Map's VWDictionary::update; the trees are
+  rebuilt when they have doubled, in a background thread swapped in at a fixed search count
+  (``rebuild_swap_frames``), so the same images give the same words whatever the load. Binary
+  descriptors only: with float ones (``features.detector: sift``) the exact search below is used
+  (logged at construction).
+* flat: exact brute force (faiss ``knn_hamming`` / ``knn``, one OpenMP thread) over a contiguous
+  numpy buffer of the words. Removing a word moves a last row into its slot: O(removed).
 
-IVF (re)builds run off the frame's critical path (``background_training=True``, the default):
-training the coarse quantiser takes 0.5-1.5 s at 20-80 k ORB words and several seconds at
-200-320 k, far above T_time (2013 §III-F). The frame that crosses the threshold only copies the
-words (a snapshot: ~1 ms for 80 k ORB words); a daemon thread trains the quantiser on a sample of
-the snapshot and adds all its words to a private new index (faiss releases the GIL; the thread
-uses ``BUILD_THREADS`` OpenMP threads so the frame loop keeps a core). Meanwhile the current index
-(flat, or the previous IVF) keeps serving queries and receiving adds/removes, which are also
-logged. The swap point is deterministic (the same images give the same words whatever the load):
-the ``ivf_swap_frames``-th :meth:`quantize` call (frame) after the build started swaps the new
-index in, waiting for the thread if it has not finished by then; the changes logged since the
-snapshot are replayed into the new index call by call once the thread has finished, the rest at
-the swap (the same changes in the same order whenever the thread finished) (issue 12: a swap at the first call after the thread finished made
-``detections.csv`` depend on the machine's load). Only the main thread calls the public methods; the thread
-touches nothing but its snapshot and its result. ``background_training=False`` builds in the
-calling frame (deterministic tests, benchmarks of the build itself); both modes end with the same
-index content once the swap happened. :meth:`join_training` waits for a pending build and swaps it
-in; :meth:`close` waits for it and discards it.
-
-The frame's own faiss calls run with ``SEARCH_THREADS`` OpenMP threads (set around each call and
-restored): with faiss's default team over all cores of a shared machine, frames after the switch
-took 0.5-1.4 s instead of ~10-60 ms (bench_vocabulary.py growth run).
+The paper rebuilt its kd-trees over the whole vocabulary at every frame, its most expensive step;
+here they are rebuilt only when they have doubled, off the frame. Exact search was the default
+before issue 48: Eq. 3-4's mean and deviation are taken over the chance scores an approximate
+search gives many WM locations, and without them the likelihood needed a trim that broke real
+images (docs/benchmarks.md).
 
 Distances: Hamming (bits) for binary descriptors, Euclidean for float ones (faiss returns squared
-L2: the square root is taken before the ratio test).
-
-Fewer than two words: the NNDR test needs a second neighbour, so every descriptor is a new word.
-The same holds when the IVF probes find fewer than two words for a descriptor.
+L2: the square root is taken before the ratio test). Fewer than two words: the NNDR test needs a
+second neighbour, so every descriptor is a new word.
 
 The inverted index maps word -> {location id: occurrences} and gives the numerator of Eq. 1 (the
 matched word pairs) for every location sharing a word with a query signature (:meth:`scores`).
@@ -64,19 +43,17 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
-import time
 from collections import defaultdict
 from contextlib import contextmanager
-from dataclasses import dataclass, field
 from typing import Iterable
 
 import faiss
 import numpy as np
 
-from rtabmap_ros2.core.kdtree import RandomizedKdTrees
+from rtabmap_ros2.core import kdtree
+from rtabmap_ros2.core.id_index import IdIndex
 from rtabmap_ros2.core.params import VocabularyParams
-from rtabmap_ros2.errors import ParameterError, SensorDataError
+from rtabmap_ros2.errors import SensorDataError
 
 logger = logging.getLogger(__name__)
 
@@ -85,40 +62,16 @@ INITIAL_CAPACITY = 4096
 # A word's dict in the inverted index is copied into a smaller one when it shrinks to a power of
 # two from this size on (remove_references).
 _COMPACT_MIN = 8
-# Smallest vocabulary an IVF is trained on when index="ivf" (below it the flat index is used).
-IVF_MIN_TRAIN_WORDS = 1000
-# IVF lists: IVF_LISTS_PER_SQRT * sqrt(words at training). bench_vocabulary.py, 200 k ORB words:
-# 2 sqrt(n) lists with nprobe 32 agree with exact search on 99.7 % of decisions; 4 sqrt(n) lists
-# query faster but k-means training (cost ~ lists^2) blocked the frame for 15-50 s.
-IVF_LISTS_PER_SQRT = 2.0
-# k-means training sample per list: faiss's minimum, since training blocks the frame it runs in
-# (200 k words, 894 lists: ~6 s; retraining happens at 4x growth only).
-IVF_TRAIN_POINTS_PER_LIST = 39
-IVF_MIN_POINTS_PER_LIST = 39
-# Seed of the training sample draw (deterministic vocabularies).
-IVF_TRAIN_SEED = 1234
 NEAREST_NEIGHBOURS = 2
-# OpenMP threads of a background IVF build (faiss's setting is per calling thread): one, so that on
-# a 2-core machine the frame loop keeps the other core (bench_vocabulary.py, growth run).
-BUILD_THREADS = 1
-# OpenMP threads of the frame's faiss calls (search, add, replay), set around each call and restored
-# (0: leave the caller's setting). bench_vocabulary.py growth run, 2 cores shared with other jobs:
-# with faiss's default (all cores) the OpenMP team waits for a descheduled thread, and while a
-# background build runs, p99 quantize time went from 80 ms to 1.4 s; one thread avoids that.
+# OpenMP threads of the exact search's faiss calls, set around each call and restored. 400 queries,
+# 20k ORB words, 2 cores shared with load 16: knn_hamming median 115 ms wall (19 ms CPU) on one
+# thread, 192 ms (44 ms CPU) on two: the team waits for a descheduled thread.
 SEARCH_THREADS = 1
-
-
-def _remove_ids(index, ids: np.ndarray) -> None:
-    """Remove (N,) int64 contiguous ids from a faiss IVF index with a hash-table direct map."""
-    index.remove_ids(faiss.IDSelectorArray(ids.size, faiss.swig_ptr(ids)))
 
 
 @contextmanager
 def _omp_threads(n_threads: int):
-    """Run faiss calls of this thread with n_threads OpenMP threads (0: unchanged), then restore."""
-    if n_threads <= 0:
-        yield
-        return
+    """Run this thread's faiss calls with n_threads OpenMP threads, then restore the setting."""
     previous = faiss.omp_get_max_threads()
     faiss.omp_set_num_threads(n_threads)
     try:
@@ -153,144 +106,11 @@ def _nndr_accepts(d1, d2, nndr: float):
     return np.isfinite(d2) & (d1 <= nndr * d2)
 
 
-def _ivf_lists(n_words: int) -> int:
-    """Number of IVF lists for a vocabulary of n_words (``IVF_LISTS_PER_SQRT`` sqrt(n))."""
-    return max(1, min(int(round(IVF_LISTS_PER_SQRT * math.sqrt(n_words))), n_words // IVF_MIN_POINTS_PER_LIST))
-
-
-def _build_ivf(words: np.ndarray, ids: np.ndarray, binary: bool, n_lists: int, nprobe: int):
-    """A new IVF index holding the given words: k-means on a sample of them, then add them all.
-
-    Touches nothing but its arguments (it runs in the background build thread).
-
-    Args:
-        words: (N,D) uint8 (binary, D bytes) or float32 descriptors; not modified.
-        ids: (N,) int64 word ids of the rows.
-        binary: Hamming (IndexBinaryIVF) or L2 (IndexIVFFlat).
-        n_lists: number of inverted lists (k-means centroids).
-        nprobe: lists visited per query.
-
-    Returns:
-        ``(index, n_train)``: the faiss index and the number of training points used.
-    """
-    n_words, dim = words.shape
-    n_train = min(n_words, IVF_TRAIN_POINTS_PER_LIST * n_lists)
-    sample = np.random.default_rng(IVF_TRAIN_SEED).choice(n_words, n_train, replace=False)
-    sample.sort()
-    training = np.ascontiguousarray(words[sample])
-    if binary:
-        bits = 8 * dim
-        index = faiss.IndexBinaryIVF(faiss.IndexBinaryFlat(bits), bits, n_lists)
-    else:
-        index = faiss.IndexIVFFlat(faiss.IndexFlatL2(dim), dim, n_lists)
-    index.train(training)
-    # Hash-table direct map: remove_ids in O(removed) instead of scanning every list.
-    index.set_direct_map_type(faiss.DirectMap.Hashtable)
-    index.nprobe = nprobe
-    index.add_with_ids(words, ids)
-    return index, n_train
-
-
-@dataclass(eq=False)
-class _IvfBuild:
-    """One IVF (re)build: its snapshot size, the changes made since the snapshot, its result.
-
-    The build thread writes ``index``/``n_train``/``error``/``seconds`` and then sets ``done``;
-    the main thread reads them only once ``done`` is set (the Event is the lock of the handoff).
-    ``log`` belongs to the main thread: ("add", ids, descriptors) / ("remove", ids, None) in order;
-    once ``done``, the main thread also owns ``index`` and replays the log into it as it goes.
-    """
-
-    size: int
-    n_lists: int
-    swap_frame: int = 0  # the quantize call (Vocabulary._frames) at which it is swapped in
-    done: threading.Event = field(default_factory=threading.Event)
-    log: list = field(default_factory=list)
-    replayed: int = 0  # changes of the log already applied to ``index`` (once ``done``)
-    thread: threading.Thread | None = None
-    index: object = None
-    n_train: int = 0
-    error: BaseException | None = None
-    seconds: float = 0.0
-
-    def run(self, words: np.ndarray, ids: np.ndarray, binary: bool, nprobe: int) -> None:
-        """Build the index from the snapshot (thread target; never raises, stores the error)."""
-        start = time.perf_counter()
-        try:
-            faiss.omp_set_num_threads(BUILD_THREADS)  # this thread only (OpenMP per-thread setting)
-            self.index, self.n_train = _build_ivf(words, ids, binary, self.n_lists, nprobe)
-        except BaseException as error:  # noqa: BLE001 - handed to the main thread, re-raised there
-            self.error = error
-        finally:
-            self.seconds = time.perf_counter() - start
-            self.done.set()
-
-
-class _RowIndex:
-    """Word id -> row of the vocabulary's buffer, with no Python object per word: the ids in
-    increasing order (``np.searchsorted``) beside their rows. A removed id keeps its place with row
-    -1 until removed ones are a quarter of the entries (then they are compacted away). Ids larger
-    than every id held are appended: new words get increasing ids, so that is the usual insert."""
-
-    def __init__(self) -> None:
-        self._ids = np.zeros(INITIAL_CAPACITY, np.int64)  # [0, _n) sorted; removed ones have row -1
-        self._rows = np.zeros(INITIAL_CAPACITY, np.int64)
-        self._n = 0
-        self._removed = 0
-
-    def rows(self, ids: np.ndarray) -> np.ndarray:
-        """Row of each id (int64 array), -1 where the id is not held."""
-        ids = np.asarray(ids, np.int64)
-        if self._n == 0:
-            return np.full(ids.shape, -1, np.int64)
-        pos = np.minimum(np.searchsorted(self._ids[: self._n], ids), self._n - 1)
-        return np.where(self._ids[pos] == ids, self._rows[pos], -1)
-
-    def row(self, word_id: int) -> int:
-        """Row of one id, -1 if it is not held."""
-        return int(self.rows(np.array([word_id]))[0])
-
-    def insert(self, ids: np.ndarray, rows: np.ndarray) -> None:
-        """Add ids (none of them held) with their rows."""
-        order = np.argsort(ids, kind="stable")
-        ids, rows = ids[order], rows[order]
-        if self._n and ids[0] <= self._ids[self._n - 1]:
-            # Not above every id held (a word re-added with its id): merge, without the removed.
-            keep = self._rows[: self._n] >= 0
-            ids = np.concatenate([self._ids[: self._n][keep], ids])
-            rows = np.concatenate([self._rows[: self._n][keep], rows])
-            order = np.argsort(ids, kind="stable")
-            ids, rows = ids[order], rows[order]
-            self._n = self._removed = 0
-        needed = self._n + ids.size
-        if needed > self._ids.size:
-            capacity = max(needed, 2 * self._ids.size)
-            self._ids = np.resize(self._ids, capacity)
-            self._rows = np.resize(self._rows, capacity)
-        self._ids[self._n: needed] = ids
-        self._rows[self._n: needed] = rows
-        self._n = needed
-
-    def set_rows(self, ids: np.ndarray, rows: np.ndarray) -> None:
-        """New rows of held ids (the buffer moved them)."""
-        self._rows[np.searchsorted(self._ids[: self._n], ids)] = rows
-
-    def remove(self, ids: np.ndarray) -> None:
-        """Drop held ids."""
-        self._rows[np.searchsorted(self._ids[: self._n], ids)] = -1
-        self._removed += ids.size
-        if self._removed > max(INITIAL_CAPACITY, self._n // 4):
-            keep = np.flatnonzero(self._rows[: self._n] >= 0)
-            self._ids[: keep.size] = self._ids[keep]
-            self._rows[: keep.size] = self._rows[keep]
-            self._n, self._removed = keep.size, 0
-
-
 class Vocabulary:
     """Words (descriptors) with int64 ids, a nearest-neighbour index and the inverted index."""
 
     def __init__(self, params: VocabularyParams, binary: bool, next_word_id: int = 1, *,
-                 background_training: bool = True):
+                 background_rebuild: bool = True):
         """Empty vocabulary.
 
         Args:
@@ -298,14 +118,11 @@ class Vocabulary:
             binary: True for binary descriptors (uint8 rows, Hamming), False for float32 (L2).
             next_word_id: first id given to a new word (ids are never reused: pass the database's
                 largest word id + 1 when continuing a map).
-            background_training: build IVF indexes in a background thread (True) or in the
-                frame that triggers them (False: deterministic, blocks that frame).
+            background_rebuild: rebuild the kd-trees in a background thread (True) or in the call
+                that doubles them (False: blocks that frame); the same words either way.
         """
         if next_word_id < 1:
             raise ValueError(f"next_word_id={next_word_id} is invalid: word ids start at 1")
-        if params.index == "kdtree" and not binary:
-            raise ParameterError("vocabulary.index=kdtree searches binary descriptors (features.detector "
-                                 "gftt_orb or orb) only; these are float descriptors: use auto, flat or ivf")
         self.params = params
         self.binary = binary
         self.next_word_id = int(next_word_id)
@@ -314,19 +131,21 @@ class Vocabulary:
         # Words: rows [0, _count) of _descriptors, with their ids in _ids; _row_of maps id -> row.
         self._descriptors: np.ndarray | None = None
         self._ids = np.zeros(0, np.int64)
-        self._row_of = _RowIndex()
+        self._row_of = IdIndex()
         self._count = 0
-        # IVF index (None while the flat index is used) and the size it was trained at.
-        self._ivf = None
-        self._ivf_trained_size = 0
-        self.background_training = bool(background_training)
-        self._build: _IvfBuild | None = None  # pending background (re)build
-        self._frames = 0  # quantize calls so far: the clock of the IVF swap
-        # index="kdtree" (made with the first words), and the words not indexed yet: as RTAB-Map's
-        # VWDictionary::update at the start of the next frame (Memory::preUpdate), a word is put in
-        # the trees when the next frame searches, in id order, unless it left the vocabulary since
-        # (the words of a location that rehearsal merged never enter the trees).
-        self._kdtree: RandomizedKdTrees | None = None
+        self.background_rebuild = bool(background_rebuild)
+        # index="kdtree" with binary words: the trees (made with the first words), and the words not
+        # indexed yet: as RTAB-Map's VWDictionary::update at the start of the next frame
+        # (Memory::preUpdate), a word is put in the trees when the next frame searches, in id order,
+        # unless it left the vocabulary since (the words of a location that rehearsal merged never
+        # enter the trees).
+        self.uses_kdtree = params.index == "kdtree" and binary
+        if params.index == "kdtree" and not binary:
+            logger.info("vocabulary.index kdtree searches binary descriptors; these are float descriptors "
+                        "(features.detector sift): the exact search (flat) is used")
+        if self.uses_kdtree:
+            kdtree.warm_up()  # numba's compile or cache load, here rather than in the first frame
+        self._kdtree: kdtree.RandomizedKdTrees | None = None
         self._kdtree_pending: dict[int, np.ndarray] = {}
         # Inverted index (word -> {location: occurrences}, module docstring): the location of a
         # word of the vocabulary that occurs once in one location is _owner[row] (0: none); any
@@ -338,11 +157,6 @@ class Vocabulary:
     def __len__(self) -> int:
         """Number of words currently indexed."""
         return self._count
-
-    @property
-    def uses_ivf(self) -> bool:
-        """True when queries go through the (approximate) IVF index."""
-        return self._ivf is not None
 
     def contains(self, word_id: int) -> bool:
         """True if the word is in the vocabulary (in RAM)."""
@@ -365,8 +179,6 @@ class Vocabulary:
         so a feature seen twice in one image gives one word (twice), not two words. Without it,
         matching uses the words present before the call only.
 
-        Each call is one frame for the IVF swap (see :meth:`_poll_build`).
-
         Args:
             descriptors: (N,D) uint8 (binary) or float32 (float) descriptors.
 
@@ -375,8 +187,6 @@ class Vocabulary:
             new word was created.
         """
         descriptors = self._check_descriptors(descriptors)
-        self._frames += 1
-        self._poll_build()
         if self.params.new_words_compared_together:
             word_ids, is_new = self._match_with_new_words(descriptors)
         else:
@@ -451,14 +261,13 @@ class Vocabulary:
             (N,) int64 word ids, -1 where the NNDR test failed (or fewer than two words exist).
         """
         descriptors = self._check_descriptors(descriptors)
-        self._poll_build()
         n = descriptors.shape[0]
         result = np.full(n, -1, np.int64)
         if n == 0 or self._count < NEAREST_NEIGHBOURS:
             return result
         distances, neighbours = self._search(descriptors)
         distances = self._distances(distances)
-        # A missing second neighbour (IVF) fails the NNDR test.
+        # A missing second neighbour (kd-tree: fewer than two words found) fails the NNDR test.
         found = (neighbours[:, 0] >= 0) & (neighbours[:, 1] >= 0)
         accepted = found & _nndr_accepts(distances[:, 0], distances[:, 1], self.params.nndr)
         result[accepted] = neighbours[accepted, 0]
@@ -477,7 +286,6 @@ class Vocabulary:
             raise ValueError(f"add_words got {ids.shape[0]} ids for {descriptors.shape[0]} descriptors")
         if ids.size == 0:
             return
-        self._poll_build()
         if ids.min() < 1:
             raise ValueError(f"word id {int(ids.min())} is invalid: word ids are >= 1")
         present = ids[self.present(ids)].tolist()
@@ -502,38 +310,30 @@ class Vocabulary:
         missing = ids[rows < 0].tolist()
         if missing:
             raise KeyError(f"remove_words: words not in the vocabulary: {missing[:10]}")
-        self._poll_build()
-        if self._ivf is not None:
-            _remove_ids(self._ivf, ids)
-        if self.params.index == "kdtree":
+        if self.uses_kdtree:
             # A word not indexed yet just leaves the pending ones; the others are marked removed.
-            indexed = [word for word in ids.tolist() if self._kdtree_pending.pop(word, None) is None]
-            if indexed and self._kdtree is not None:
+            pending = self._kdtree_pending
+            indexed = [word for word in ids.tolist() if pending.pop(word, None) is None] if pending else ids
+            if len(indexed) and self._kdtree is not None:
                 self._kdtree.remove(np.asarray(indexed, np.int64))
-        if self._build is not None:
-            self._build.log.append(("remove", ids, None))
-        row_of_removed = dict(zip(ids.tolist(), rows.tolist()))  # kept current as rows move
-        moved_rows: dict[int, int] = {}  # the words kept that moved -> their new row
+        # The last rows of the buffer that stay fill the holes the removed rows leave below them
+        # (in increasing order: deterministic), all at once.
+        count = self._count - ids.size
+        holes = np.sort(rows[rows < count])
+        tail = np.ones(self._count - count, bool)
+        tail[rows[rows >= count] - count] = False
+        movers = count + np.flatnonzero(tail)
+        self._descriptors[holes] = self._descriptors[movers]
+        self._ids[holes] = self._ids[movers]
+        self._owner[holes] = self._owner[movers]
+        self._owner[count: self._count] = 0
+        self._count = count
+        shared = self._shared
         for word in ids.tolist():
-            # Move the last row into the freed slot.
-            slot = row_of_removed[word]
-            last = self._count - 1
-            if slot != last:
-                moved = int(self._ids[last])
-                self._descriptors[slot] = self._descriptors[last]
-                self._ids[slot] = moved
-                self._owner[slot] = self._owner[last]
-                if moved in row_of_removed:
-                    row_of_removed[moved] = slot
-                else:
-                    moved_rows[moved] = slot
-            self._owner[last] = 0
-            self._count = last
-            self._shared.pop(word, None)
+            shared.pop(word, None)
         self._row_of.remove(ids)
-        if moved_rows:
-            self._row_of.set_rows(np.fromiter(moved_rows, np.int64, len(moved_rows)),
-                                  np.fromiter(moved_rows.values(), np.int64, len(moved_rows)))
+        if holes.size:
+            self._row_of.set_rows(self._ids[holes], holes)
 
     def descriptors_of(self, word_ids) -> np.ndarray:
         """(N,D) descriptors of the given words (KeyError if one is absent)."""
@@ -548,23 +348,16 @@ class Vocabulary:
         return self._descriptors[slots].copy()
 
     @property
-    def training(self) -> bool:
-        """True while a background IVF build is pending (not yet swapped in)."""
-        return self._build is not None
-
-    def join_training(self) -> None:
-        """Wait for a pending background IVF build and swap it in (no-op when none is pending)."""
-        self._poll_build(wait=True)
+    def rebuilding(self) -> bool:
+        """True while a background kd-tree rebuild is pending (not swapped in yet)."""
+        return self._kdtree is not None and self._kdtree.rebuilding
 
     def close(self) -> None:
-        """Wait for a pending background IVF build and discard it (idempotent).
-
-        The vocabulary stays usable; a later growth starts a new build. Without close() the
-        build thread (a daemon) finishes on its own and the vocabulary is garbage-collectable.
-        """
-        build, self._build = self._build, None
-        if build is not None and build.thread is not None:
-            build.thread.join()
+        """Wait for a pending kd-tree rebuild and discard it (idempotent; the vocabulary stays
+        usable). Without close() the rebuild thread (a daemon) finishes on its own and the
+        vocabulary is garbage-collectable."""
+        if self._kdtree is not None:
+            self._kdtree.close()
 
     # ------------------------------------------------------- inverted index
     def add_references(self, location_id: int, word_ids: np.ndarray) -> None:
@@ -722,7 +515,7 @@ class Vocabulary:
         return np.ascontiguousarray(descriptors, dtype=self._dtype)
 
     def _insert(self, ids: np.ndarray, descriptors: np.ndarray) -> None:
-        """Append words to the buffer and the index (O(added), amortised)."""
+        """Append words to the buffer (O(added), amortised); the kd-trees take them at the next search."""
         n = ids.size
         if self._descriptors is None:
             self._dim = int(descriptors.shape[1])
@@ -744,105 +537,21 @@ class Vocabulary:
         self._ids[start:needed] = ids
         self._row_of.insert(ids, np.arange(start, needed, dtype=np.int64))
         self._count = needed
-        if self.params.index == "kdtree":
+        if self.uses_kdtree:
             self._kdtree_pending.update(zip(ids.tolist(), descriptors.copy()))
-        if self._ivf is not None:
-            with _omp_threads(SEARCH_THREADS):
-                self._ivf.add_with_ids(descriptors, ids)
-        if self._build is not None:
-            self._build.log.append(("add", ids.copy(), descriptors.copy()))
-        self._maybe_train_ivf()
-
-    def _ivf_threshold(self) -> int | None:
-        """Vocabulary size from which the IVF index is used (None: never)."""
-        if self.params.index in ("flat", "kdtree"):
-            return None
-        if self.params.index == "ivf":
-            return IVF_MIN_TRAIN_WORDS
-        return self.params.ivf_min_words
-
-    def _maybe_train_ivf(self) -> None:
-        """Build the IVF once big enough; rebuild it after ``ivf_retrain_growth`` growth."""
-        threshold = self._ivf_threshold()
-        if threshold is None or self._count < threshold or self._build is not None:
-            return
-        if self._ivf is not None and self._count < self.params.ivf_retrain_growth * self._ivf_trained_size:
-            return
-        self._start_build()
-
-    def _start_build(self) -> None:
-        """Snapshot the words and (re)build the IVF from it, in a thread or right here."""
-        # The snapshot is private to the build: the main thread keeps moving rows of the buffer.
-        words = self._descriptors[: self._count].copy()
-        ids = self._ids[: self._count].copy()
-        build = _IvfBuild(size=self._count, n_lists=_ivf_lists(self._count),
-                          swap_frame=self._frames + self.params.ivf_swap_frames)
-        self._build = build
-        if not self.background_training:
-            build.run(words, ids, self.binary, self.params.ivf_nprobe)
-            self._poll_build(wait=True)
-            return
-        build.thread = threading.Thread(target=build.run, args=(words, ids, self.binary, self.params.ivf_nprobe),
-                                        name="vocabulary-ivf-build", daemon=True)
-        build.thread.start()
-        logger.info("vocabulary: IVF build of %d words (%d lists) started in the background",
-                    build.size, build.n_lists)
-
-    def _poll_build(self, wait: bool = False) -> None:
-        """Swap in the background build at its swap frame, or now with ``wait`` (main thread):
-        wait for it, then replay the changes logged since the snapshot.
-
-        Once the thread has finished, each call replays the changes logged so far, so the swap
-        frame replays only the last ones: replaying 300 frames of changes at once took up to
-        0.4 s on a 10,000-frame run with large transfers. The replay order is the same whenever
-        it happens, so the swapped-in index is too."""
-        build = self._build
-        if build is None:
-            return
-        swap = wait or self._frames >= build.swap_frame
-        if not swap and not build.done.is_set():
-            return
-        if build.thread is not None:
-            build.thread.join()
-        if build.error is not None:
-            self._build = None
-            raise build.error
-        start = time.perf_counter()
-        with _omp_threads(SEARCH_THREADS):
-            for kind, ids, descriptors in build.log:
-                if kind == "add":
-                    build.index.add_with_ids(descriptors, ids)
-                else:
-                    _remove_ids(build.index, ids)
-        build.replayed += len(build.log)
-        build.log.clear()
-        if not swap:
-            return
-        self._build = None
-        index = build.index
-        if index.ntotal != self._count:
-            raise RuntimeError(f"vocabulary: the rebuilt IVF holds {index.ntotal} words, the vocabulary "
-                               f"{self._count}: a change was lost (report this bug)")
-        self._ivf = index
-        self._ivf_trained_size = build.size
-        logger.info("vocabulary: IVF trained on %d of %d words, %d lists, in %.2f s; %d changes replayed, "
-                    "the last in %.1f ms", build.n_train, build.size, build.n_lists, build.seconds,
-                    build.replayed, 1e3 * (time.perf_counter() - start))
 
     def _search(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """2-NN distances (N,2) and word ids (N,2) (-1 where not found)."""
-        if self.params.index == "kdtree":
+        if self.uses_kdtree:
             if self._kdtree is None:
-                self._kdtree = RandomizedKdTrees(self._dim, seed=self.params.kdtree_seed)
+                self._kdtree = kdtree.RandomizedKdTrees(self._dim, seed=self.params.kdtree_seed,
+                                                        background_rebuild=self.background_rebuild,
+                                                        swap_searches=self.params.rebuild_swap_frames)
             if self._kdtree_pending:
                 ids = sorted(self._kdtree_pending)
                 self._kdtree.add(np.stack([self._kdtree_pending[i] for i in ids]), np.asarray(ids, np.int64))
                 self._kdtree_pending.clear()
             return self._kdtree.search(descriptors)
-        if self._ivf is not None:
-            with _omp_threads(SEARCH_THREADS):
-                distances, ids = self._ivf.search(descriptors, NEAREST_NEIGHBOURS)
-            return distances.astype(np.float32), ids
         words = self._descriptors[: self._count]
         with _omp_threads(SEARCH_THREADS):
             if self.binary:

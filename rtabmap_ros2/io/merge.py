@@ -47,7 +47,7 @@ from rtabmap_ros2.errors import DatabaseError, ParameterError, RegistrationError
 log = logging.getLogger(__name__)
 
 # Parameters that decide what a stored word is: inputs whose stored features are reused must agree
-# on them (the vocabulary's search settings, index and ivf_*, only change how fast words are found).
+# on them (the vocabulary's search settings, index and rebuild_swap_frames, only change how words are found).
 WORD_PARAMETERS = ("features.detector", "features.max_features", "features.response_threshold",
                    "features.roi_ratios", "vocabulary.nndr", "vocabulary.new_words_compared_together")
 # Nodes read from an input per query.
@@ -169,7 +169,7 @@ def _word_parameters(path: Path, stored: dict) -> dict[str, object]:
         raise DatabaseError(f"input {path} has no stored parameters: it was not written by rtabmap_ros2's map, "
                             "node or merge")
     try:
-        params = Params.from_mapping(stored)
+        params = Params.from_stored(stored)
     except ParameterError as exc:
         raise DatabaseError(f"input {path} holds parameters this rtabmap_ros2 does not know ({exc}): it was "
                             "made by another version") from exc

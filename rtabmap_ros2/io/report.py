@@ -171,7 +171,7 @@ def _params_of(db: Database) -> Params:
     if not stored:
         log.warning("the database holds no parameters: the report uses the defaults")
         return Params()
-    return Params.from_mapping(stored)
+    return Params.from_stored(stored)
 
 
 def _local_map(nodes: dict, links: list[Link], params: Params, planar: bool

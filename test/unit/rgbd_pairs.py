@@ -36,7 +36,7 @@ def product_signatures(folder, params: Params):
     quantised first, 3D words from depth): ``(new, old, (descriptors new, old), T_new_old truth)``."""
     camera = pair_camera(folder)
     extractor = FeatureExtractor(params.features)
-    vocabulary = Vocabulary(params.vocabulary, extractor.binary, background_training=False)
+    vocabulary = Vocabulary(params.vocabulary, extractor.binary, background_rebuild=False)
     made, poses = [], []
     for node, which in ((1, "prev"), (2, "curr")):
         bgr = cv2.imread(str(folder / f"img_{which}.png"))

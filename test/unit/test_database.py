@@ -441,6 +441,36 @@ def test_background_writer_checkpoints_the_wal_into_the_file_after_the_batches(d
     assert sorted(db.load_nodes()) == list(range(1, 12))
 
 
+def test_a_slow_checkpoint_does_not_hold_back_the_next_batch(db, rng, monkeypatch):
+    """Issue 50: a checkpoint's fsync took 0.6 s on a machine busy with I/O, and the next frame's
+    batch waited for it (its join, Alg. 1 line 17); checkpoints now have a thread of their own."""
+    import threading
+
+    import rtabmap_ros2.core.database as database_module
+
+    monkeypatch.setattr(database_module, "CHECKPOINT_INTERVAL_S", 0.0)  # after every batch
+    checkpointing, release = threading.Event(), threading.Event()
+    checkpoint = database_module._checkpoint
+
+    def slow_checkpoint(conn, path):
+        checkpointing.set()
+        release.wait(10)
+        checkpoint(conn, path)
+    monkeypatch.setattr(database_module, "_checkpoint", slow_checkpoint)
+    writer = BackgroundWriter(db)
+    writer.submit(WriteBatch(locations=[(make_signature(rng, 1), None)]))
+    writer.join()
+    assert checkpointing.wait(10)  # a checkpoint is under way, and stays so until released
+    start = time.monotonic()
+    writer.submit(WriteBatch(locations=[(make_signature(rng, 2), None)]))
+    writer.join()
+    assert time.monotonic() - start < 2.0, "the batch waited for the checkpoint"
+    assert sorted(db.load_nodes()) == [1, 2]
+    release.set()
+    writer.close()
+    assert not writer._checkpointer.is_alive()
+
+
 def test_close_finishes_background_writes(db_path, rng):
     database = Database(db_path)
     writer = BackgroundWriter(database)

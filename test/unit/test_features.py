@@ -124,9 +124,12 @@ def test_real_frame_cap_then_orb_border(real_image):
     """RTAB-Map's GFTT_ORB on a real 640x480 frame: the T_maxFeatures strongest corners of the whole
     image, then ORB drops those it cannot describe (its 19 px edge threshold, 23 px with the rotated
     patch): fewer than T_maxFeatures are kept, none in that band (the reference keeps a median 346 of
-    400 on the make_sequence images)."""
+    400 on the make_sequence images). With features.describable_corners_only (the default) GFTT looks
+    only where ORB describes: T_maxFeatures are kept, none in the band either."""
+    rtabmaps = FeatureExtractor(FeatureParams(describable_corners_only=False)).extract(real_image)
+    assert 300 < len(rtabmaps) < FeatureParams().max_features
     features = FeatureExtractor(FeatureParams()).extract(real_image)
     assert isinstance(features, Features)
-    assert 300 < len(features) < FeatureParams().max_features
+    assert len(features) == FeatureParams().max_features
     x, y = features.keypoints[:, 0], features.keypoints[:, 1]
     assert x.min() >= 19 and x.max() < 640 - 19 and y.min() >= 19 and y.max() < 480 - 19

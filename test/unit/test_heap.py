@@ -49,5 +49,8 @@ def test_a_transfer_of_many_locations_releases_the_heap_an_ordinary_frame_does_n
     with Rtabmap(Params().with_value("memory.max_wm_size", 10), path) as again:
         first = again.process(SensorFrame(stamp_ns=10**12, rgb=sequence.image(0)))
         assert first.transferred >= HEAP_RELEASE_MIN_TRANSFERRED and len(calls) == 1
-        second = again.process(SensorFrame(stamp_ns=10**12 + NS, rgb=sequence.image(1)))
-        assert 0 < second.transferred < HEAP_RELEASE_MIN_TRANSFERRED and len(calls) == 1
+        # Frames of other places: each transfers a few locations (retrieval brings some back, so not every one
+        # transfers), far fewer than a release needs, and none releases the heap.
+        later = [again.process(SensorFrame(stamp_ns=10**12 + (k + 1) * NS, rgb=sequence.image(len(sequence) // 2 + k))).transferred
+                 for k in range(5)]
+        assert any(later) and max(later) < HEAP_RELEASE_MIN_TRANSFERRED and len(calls) == 1

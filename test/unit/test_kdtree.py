@@ -6,6 +6,7 @@ import faiss
 import numpy as np
 import pytest
 
+from rtabmap_ros2.core import kdtree
 from rtabmap_ros2.core.kdtree import RandomizedKdTrees
 from rtabmap_ros2.core.params import Params, VocabularyParams
 from rtabmap_ros2.core.vocabulary import Vocabulary
@@ -132,9 +133,16 @@ def test_vocabulary_kdtree_seed_changes_the_approximate_words_not_the_exact_ones
     assert not np.array_equal(chance, other_chance)
 
 
-def test_kdtree_needs_binary_descriptors():
-    with pytest.raises(ParameterError, match="binary descriptors"):
-        Vocabulary(VocabularyParams(index="kdtree"), binary=False)
+def test_kdtree_with_float_descriptors_uses_the_exact_search(rng, caplog):
+    """SIFT (float descriptors) with the default kdtree: the exact search, said once in the log."""
+    with caplog.at_level("INFO", logger="rtabmap_ros2.core.vocabulary"):
+        vocabulary = Vocabulary(VocabularyParams(index="kdtree"), binary=False)
+    assert not vocabulary.uses_kdtree
+    assert any("exact search" in record.getMessage() for record in caplog.records)
+    words = rng.standard_normal((50, 128)).astype(np.float32)
+    ids, _ = vocabulary.quantize(words)
+    again = vocabulary.match(words + np.float32(1e-3))
+    np.testing.assert_array_equal(again, ids)
 
 
 def test_rtabmap_nn_strategy_names_the_index():
@@ -142,3 +150,61 @@ def test_rtabmap_nn_strategy_names_the_index():
     assert Params().with_value("Kp/NNStrategy", 3).vocabulary.index == "flat"
     with pytest.raises(ParameterError, match="Kp/NNStrategy 2"):
         Params().with_value("Kp/NNStrategy", 2)
+
+
+def test_background_rebuild_answers_as_a_rebuild_at_its_snapshot_then_the_same_changes(rng, monkeypatch):
+    monkeypatch.setattr(kdtree, "SWAP_WORDS_PER_SEARCH", 10**9)  # the swap at swap_searches
+    """The rebuild after the index doubled runs in a thread; the swap_searches-th search after it
+    started swaps it in with the words added and removed meanwhile replayed. Until then the current
+    trees answer; from then on the answers are those of a rebuild made right away, whatever the
+    thread's timing (the swap counts searches, not time)."""
+    words = random_binary(rng, 5000)
+    queries = flip_bits(rng, words[::11], 12)
+    later = random_binary(rng, 300)
+
+    def run(background: bool) -> list:
+        trees = RandomizedKdTrees(32, seed=3, background_rebuild=background, swap_searches=2)
+        trees.add(words[:1000], np.arange(1000))
+        trees.add(words[1000:2500], np.arange(1000, 2500))  # crosses 2x: a rebuild
+        assert trees.rebuilding == background
+        answers = [trees.search(queries)]
+        trees.add(later, np.arange(10_000, 10_300))  # during the rebuild: replayed at the swap
+        trees.remove(np.arange(0, 500, 5))
+        answers.append(trees.search(queries))  # the second search after the start: swapped in
+        assert not trees.rebuilding
+        answers.append(trees.search(queries))
+        return answers
+
+    synchronous, background = run(False), run(True)
+    # The last answers are the same; before the swap, the background run answered from the old trees.
+    for k in (1, 2):
+        np.testing.assert_array_equal(background[k][1], synchronous[k][1])
+        np.testing.assert_array_equal(background[k][0], synchronous[k][0])
+    assert not np.isin(background[2][1], np.arange(0, 500, 5)).any()
+
+
+def test_a_large_rebuild_gets_more_searches_and_its_replay_is_spread(rng, monkeypatch):
+    """Issue 50: the swap comes one search per SWAP_WORDS_PER_SEARCH words after the rebuild started
+    (not before swap_searches), so the swap search need not wait for a long build; once the thread
+    is done, each search replays at most REPLAY_WORDS_PER_SEARCH logged words, the rest at the swap."""
+    monkeypatch.setattr(kdtree, "SWAP_WORDS_PER_SEARCH", 500)
+    monkeypatch.setattr(kdtree, "REPLAY_WORDS_PER_SEARCH", 150)
+    words = random_binary(rng, 3000)
+    trees = RandomizedKdTrees(32, seed=1, background_rebuild=True, swap_searches=2)
+    trees.add(words[:1000], np.arange(1000))
+    trees.add(words[1000:2500], np.arange(1000, 2500))  # 2,500 words: swapped 5 searches on
+    rebuild = trees._rebuild
+    assert rebuild.swap_at == trees._searches + 5
+    rebuild.thread.join(30)
+    for k in range(5):  # 100 words a search, logged
+        trees.add(words[2500 + 100 * k: 2600 + 100 * k], np.arange(2500 + 100 * k, 2600 + 100 * k))
+    trees.search(words[:3])  # replays two changes (200 words, the bound reached after the second)
+    assert len(rebuild.log) == 3 and trees.rebuilding
+    for _ in range(3):
+        trees.search(words[:3])
+    assert trees.rebuilding
+    trees.search(words[:3])  # the fifth: swapped in, with every change
+    assert not trees.rebuilding and trees.last_wait_seconds < 1.0
+    _, found = trees.search(words)
+    assert np.mean(found[:, 0] == np.arange(3000)) > 0.95
+

@@ -12,7 +12,7 @@ def test_defaults_are_the_papers_table_i():
     """Table I, except where measurements chose RTAB-Map's values (see the fields' docs)."""
     p = Params()
     assert p.memory.stm_size == 30
-    assert p.memory.rehearsal_similarity == pytest.approx(0.70)  # paper 0.20; RTAB-Map 0.6 (see its doc)
+    assert p.memory.rehearsal_similarity == pytest.approx(0.6)  # paper 0.20; RTAB-Map 0.6 (see its doc)
     assert p.memory.recent_wm_ratio == pytest.approx(0.20)
     assert p.memory.bad_signature_ratio == pytest.approx(0.25)
     assert p.memory.time_threshold_ms == pytest.approx(700.0)
@@ -20,23 +20,23 @@ def test_defaults_are_the_papers_table_i():
     assert p.vocabulary.nndr == pytest.approx(0.8)
     assert p.features.max_features == 400
     assert p.bayes.sigma == pytest.approx(1.6) and p.bayes.neighborhood == 16
-    # Hypothesis validation as RTAB-Map's defaults (issue 32: its epipolar check off, its virtual place
-    # prior), plus the three additions measured in bench/bench_lcd.py.
+    # Hypothesis selection and validation as RTAB-Map's defaults (issues 32 and 48: its epipolar check
+    # off, its virtual place prior, its likelihood, its rehearsal and its approximate word search).
     assert p.bayes.loop_ratio == 0.0 and not p.bayes.epipolar_verification
     assert p.bayes.virtual_place_prior == pytest.approx(0.9) and p.bayes.epipolar_min_matches == 8
-    assert p.bayes.likelihood_trim > 0 and p.bayes.min_evidence_ratio > 0 and p.bayes.refine_hops > 0
+    assert p.bayes.likelihood == "tf_idf" and p.memory.rehearsal_similarity == pytest.approx(0.6)
+    assert p.vocabulary.index == "kdtree"
 
 
 def test_one_detector_for_detect_map_and_the_node():
     """config/rtabmap.yaml (map, demo, the node) keeps detect's loop closure detection (issue 32) but for
-    the four values bench_slam.py measured for SLAM (the raw score, the new words' comparison, the
-    hypothesis refinement's window and the view alignment)."""
+    the two values bench_slam.py measured for SLAM (the raw score and the new words' comparison)."""
     from dataclasses import replace
 
     from rtabmap_ros2.core.params import default_config_path
 
     slam, defaults = Params.from_yaml(default_config_path()), Params()
-    assert slam.bayes == replace(defaults.bayes, likelihood="eq1", refine_window=0, align_radius=0.0)
+    assert slam.bayes == replace(defaults.bayes, likelihood="eq1")
     assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False)
     assert slam.features == defaults.features
 
@@ -168,3 +168,27 @@ def test_round_trip_through_yaml(tmp_path):
     p.to_yaml(tmp_path / "out.yaml")
     again = Params.from_yaml(tmp_path / "out.yaml")
     assert again == p
+
+
+def test_the_removed_ivf_parameters_say_what_replaced_them():
+    """Issue 50: config files written for the IVF word search get a ParameterError naming the change."""
+    with pytest.raises(ParameterError, match="renamed vocabulary.rebuild_swap_frames"):
+        Params().with_value("vocabulary.ivf_swap_frames", 300)
+    with pytest.raises(ParameterError, match="IVF word search was removed"):
+        Params().with_overrides(["vocabulary.ivf_nprobe=32"])
+    with pytest.raises(ParameterError, match="auto and ivf were removed"):
+        Params().with_value("vocabulary.index", "auto")
+    assert Params().with_value("vocabulary.rebuild_swap_frames", 50).vocabulary.rebuild_swap_frames == 50
+
+
+def test_a_database_made_with_a_removed_parameter_still_loads(caplog):
+    """Issue 48 removed bayes.likelihood_trim and the other additions: a map made before still
+    exports (its stored parameters load, the removed one left out with a warning), while a config
+    file naming it gets an error saying what happened."""
+    stored = {"bayes": {"likelihood_trim": 0.5, "loop_threshold": 0.2}, "memory": {"stm_size": 12}}
+    with caplog.at_level("WARNING"):
+        params = Params.from_stored(stored)
+    assert params.bayes.loop_threshold == pytest.approx(0.2) and params.memory.stm_size == 12
+    assert "bayes.likelihood_trim" in caplog.text
+    with pytest.raises(ParameterError, match="removed in issue 48"):
+        Params.from_mapping(stored)

@@ -296,7 +296,7 @@ def test_pnp_rejects_frames_of_another_scene(shared_data, slam_params):
     other = shared_data / "rgbd" / "rtabmap_frames"
     camera = CameraModel(525.0, 525.0, 319.5, 239.5, 640, 480)
     extractor = FeatureExtractor(slam_params.features)
-    vocabulary = Vocabulary(slam_params.vocabulary, True, background_training=False)
+    vocabulary = Vocabulary(slam_params.vocabulary, True, background_rebuild=False)
     made = []
     for k, (rgb_path, depth, scale) in enumerate((
             (tum / "img_prev.png", tum / "dep_prev.png", TUM_DEPTH_SCALE),

@@ -219,31 +219,31 @@ def test_localization_mode_adds_no_location(tmp_path):
 
 
 def test_the_same_images_give_the_same_detections_whatever_the_load(tmp_path, monkeypatch):
-    """Issue 12: the IVF index is swapped in at a frame decided by the frame count, so a slow
-    background build (a loaded machine) changes nothing in the results."""
+    """Issue 12: the kd-trees' background rebuild is swapped in at a frame decided by the frame
+    count, so a slow rebuild (a loaded machine) changes nothing in the results."""
     import threading
     import time
 
-    from rtabmap_ros2.core import vocabulary as vocabulary_module
+    from rtabmap_ros2.core import kdtree
 
     sequence = make_sequence(60, seed=REVISIT_SEED, segment_length=(10, 20))
-    params = Params().with_overrides(["vocabulary.index=ivf", "vocabulary.ivf_swap_frames=3"])
-    build = vocabulary_module._build_ivf
+    params = Params().with_overrides(["vocabulary.index=kdtree", "vocabulary.rebuild_swap_frames=3"])
+    run_rebuild = kdtree._Rebuild.run
 
     def runs() -> list:
         with Rtabmap(params, tmp_path / "map.db", delete_existing=True) as rtabmap:
             stats = run(rtabmap, sequence, len(sequence))
-            assert rtabmap.memory.vocabulary.uses_ivf
+            assert rtabmap.memory.vocabulary._kdtree.rebuilds >= 2
         return [(s.highest_hypothesis_id, round(s.highest_hypothesis_value, 12), s.loop_closure_id,
                  s.merged_id, s.vocabulary_size) for s in stats]
 
     fast = runs()
 
-    def slow_build(*args, **kwargs):
+    def slow_rebuild(self):
         if threading.current_thread() is not threading.main_thread():
-            time.sleep(0.3)  # a loaded machine: the build finishes frames later
-        return build(*args, **kwargs)
-    monkeypatch.setattr(vocabulary_module, "_build_ivf", slow_build)
+            time.sleep(0.3)  # a loaded machine: the rebuild finishes frames later
+        run_rebuild(self)
+    monkeypatch.setattr(kdtree._Rebuild, "run", slow_rebuild)
     assert runs() == fast
 
 

@@ -14,7 +14,7 @@ import pytest
 
 from rtabmap_ros2.core.features import FeatureExtractor
 from rtabmap_ros2.core.params import FeatureParams, VocabularyParams
-from rtabmap_ros2.core import vocabulary as vocabulary_module
+from rtabmap_ros2.core import kdtree
 from rtabmap_ros2.core.vocabulary import Vocabulary
 from rtabmap_ros2.errors import SensorDataError
 
@@ -123,7 +123,7 @@ def test_new_words_compared_together_match_the_one_by_one_rule(rng, binary):
             row ^= np.packbits(flips)
         return out
 
-    vocab = Vocabulary(VocabularyParams(), binary=binary)
+    vocab = Vocabulary(VocabularyParams(index="flat"), binary=binary)  # the rule is the exact search's
     first = make(rng, 120)
     # Word pairs A, B close together: a descriptor half way is a new word (d1 = d2); one nearer A
     # matches A, unless that new word of the frame counts as its second neighbour (then it is new).
@@ -336,45 +336,6 @@ def test_inverted_index_matches_a_plain_model_through_word_churn(vocab, rng):
     assert len(vocab._shared) < len(model)  # most words held no dict
 
 
-def test_word_rows_follow_adds_removals_and_re_added_ids(rng, monkeypatch):
-    """The id -> row index answers as a dict does through appends, removals (with compaction),
-    row moves and ids re-added below the largest one."""
-    monkeypatch.setattr(vocabulary_module, "INITIAL_CAPACITY", 8)  # compaction every few removals
-    index = vocabulary_module._RowIndex()
-    model: dict[int, int] = {}
-    next_id = 1
-    for step in range(400):
-        action = rng.random()
-        if action < 0.4:
-            ids = np.arange(next_id, next_id + rng.integers(1, 20))
-            next_id = int(ids[-1]) + 1
-        elif action < 0.55:
-            gone = [w for w in range(1, next_id) if w not in model]
-            if not gone:
-                continue
-            ids = np.array(sorted(rng.choice(gone, min(len(gone), 5), replace=False)))
-        elif action < 0.85 and model:
-            ids = rng.choice(np.array(sorted(model)), min(len(model), int(rng.integers(1, 12))), replace=False)
-            index.remove(ids)
-            for w in ids.tolist():
-                del model[w]
-            continue
-        elif model:
-            ids = rng.choice(np.array(sorted(model)), min(len(model), 4), replace=False)
-            rows = rng.integers(0, 10_000, ids.size)
-            index.set_rows(ids, rows)
-            model.update(zip(ids.tolist(), rows.tolist()))
-            continue
-        else:
-            continue
-        rows = rng.integers(0, 10_000, ids.size)
-        index.insert(ids, rows)
-        model.update(zip(ids.tolist(), rows.tolist()))
-        probe = np.arange(0, next_id + 3)
-        assert index.rows(probe).tolist() == [model.get(w, -1) for w in probe.tolist()]
-    assert index.row(next_id + 100) == -1
-
-
 def brute_force_pairs(query: dict[int, int], signatures: dict[int, list[int]]) -> dict[int, int]:
     """Eq. 1 numerator computed directly from the signatures."""
     out = {}
@@ -403,152 +364,112 @@ def test_scores_equal_brute_force_eq1(vocab, rng):
     assert vocab.scores(query) == brute_force_pairs(query, signatures)
 
 
-def test_ivf_agrees_with_flat_on_30k_words(rng):
-    """IVF (auto switch at 20 k words) takes the same NNDR decisions as the exact flat index."""
-    n_words, n_queries = 30_000, 800
-    centres = random_binary(rng, n_words)
-    flat = Vocabulary(VocabularyParams(index="flat"), binary=True)
-    ivf = Vocabulary(VocabularyParams(index="auto", ivf_min_words=20_000), binary=True, background_training=False)
-    ids = np.arange(1, n_words + 1)
-    # Words added in two steps, like a growing map: the IVF is built when the second crosses 20 k.
-    flat.add_words(ids[:10_000], centres[:10_000])
-    ivf.add_words(ids[:10_000], centres[:10_000])
-    assert not ivf.uses_ivf
-    flat.add_words(ids[10_000:], centres[10_000:])
-    ivf.add_words(ids[10_000:], centres[10_000:])
-    assert ivf.uses_ivf and len(ivf) == len(flat) == n_words
-    # Queries: half near existing words (should match), half random (should be new).
-    near = flip_bits(rng, centres[rng.choice(n_words, n_queries // 2, replace=False)], 20)
-    queries = np.concatenate([near, random_binary(rng, n_queries // 2)])
-    exact, approx = flat.match(queries), ivf.match(queries)
-    assert np.mean(exact[: n_queries // 2] >= 0) > 0.9 and np.mean(exact[n_queries // 2:] >= 0) < 0.1
-    assert np.mean(exact == approx) >= 0.97
-    # Incremental changes reach the IVF: removed words are no longer found, added ones are.
-    ivf.remove_words(ids[:100])
-    assert not np.isin(ivf.match(centres[:100]), ids[:100]).any()
-    ivf.add_words(ids[:100], centres[:100])
-    assert np.mean(ivf.match(centres[:100]) == ids[:100]) > 0.9
-
-
 @pytest.fixture
-def gated_build(monkeypatch):
-    """Background IVF builds wait for ``gate.set()`` before returning (changes land during training).
+def gated_rebuild(monkeypatch):
+    """Background kd-tree rebuilds wait for ``gate.set()`` before returning (changes land meanwhile).
 
-    Synchronous builds (in the test's thread) are not gated.
+    Synchronous ones (in the test's thread) are not gated.
     """
     gate = threading.Event()
-    build = vocabulary_module._build_ivf
+    run = kdtree._Rebuild.run
+    monkeypatch.setattr(kdtree, "SWAP_WORDS_PER_SEARCH", 10**9)  # the swap at rebuild_swap_frames
 
-    def waiting_build(*args, **kwargs):
-        result = build(*args, **kwargs)
+    def waiting_run(self):
         if threading.current_thread() is not threading.main_thread():
             assert gate.wait(30), "test never opened the gate"
-        return result
-    monkeypatch.setattr(vocabulary_module, "_build_ivf", waiting_build)
+        run(self)
+    monkeypatch.setattr(kdtree._Rebuild, "run", waiting_run)
     yield gate
     gate.set()
 
 
-def changes_during_training(vocab: Vocabulary, centres: np.ndarray, ids: np.ndarray) -> None:
-    """The mapper's changes while an IVF build is pending: new words, transfers, retrievals."""
+def changes_during_rebuild(vocab: Vocabulary, centres: np.ndarray, ids: np.ndarray) -> None:
+    """The mapper's changes while a rebuild is pending: new words, transfers, retrievals."""
     vocab.add_words(ids[4000:5000], centres[4000:5000])  # new words after the snapshot
+    vocab.match(centres[:1])                             # (they enter the trees at a search)
     vocab.remove_words(ids[:300])                        # transferred to LTM (in the snapshot)
     vocab.remove_words(ids[4500:4700])                   # added after the snapshot, then removed
     vocab.add_words(ids[100:200], centres[100:200])      # retrieved back with their ids
     vocab.remove_words(ids[3900:4100])                   # straddles the snapshot
 
 
-def test_background_build_gives_same_decisions_as_synchronous(rng, gated_build):
-    """Adds/removes made while the IVF trains in the background all reach it; same decisions as sync."""
+def grown_past_a_rebuild(params: VocabularyParams, centres: np.ndarray, ids: np.ndarray, **kwargs) -> Vocabulary:
+    """A vocabulary whose kd-trees were built over 1,500 words, then given 2,500 more (a rebuild)."""
+    vocab = Vocabulary(params, binary=True, **kwargs)
+    vocab.add_words(ids[:1500], centres[:1500])
+    vocab.match(centres[:1])  # the first build
+    vocab.add_words(ids[1500:4000], centres[1500:4000])
+    vocab.match(centres[:1])  # the words enter the trees: more than twice the build, a rebuild
+    return vocab
+
+
+def test_background_rebuild_gives_same_decisions_as_synchronous(rng, gated_rebuild):
+    """Adds/removes made while the kd-trees are rebuilt in the background all reach the new trees;
+    from the swap on, the same decisions as a vocabulary that rebuilt them in the frame."""
     n_words = 5000
     centres = random_binary(rng, n_words)
     ids = np.arange(1, n_words + 1)
-    params = VocabularyParams(index="auto", ivf_min_words=4000)
-    sync = Vocabulary(params, binary=True, background_training=False)
-    background = Vocabulary(params, binary=True)
+    params = VocabularyParams(rebuild_swap_frames=3)
+    sync = grown_past_a_rebuild(params, centres, ids, background_rebuild=False)
+    background = grown_past_a_rebuild(params, centres, ids)
     flat = Vocabulary(VocabularyParams(index="flat"), binary=True)
+    flat.add_words(ids[:4000], centres[:4000])
+    assert background.rebuilding and not sync.rebuilding
+    for vocab in (sync, background, flat):
+        changes_during_rebuild(vocab, centres, ids)
     near = flip_bits(rng, centres, 20)
-    for vocab in (sync, background, flat):
-        vocab.add_words(ids[:4000], centres[:4000])  # crosses ivf_min_words: the build starts
-    assert sync.uses_ivf and not sync.training
-    assert background.training and not background.uses_ivf
-    # While it trains, the exact index serves queries: decisions equal the flat vocabulary's.
-    np.testing.assert_array_equal(background.match(near[:1000]), flat.match(near[:1000]))
-    for vocab in (sync, background, flat):
-        changes_during_training(vocab, centres, ids)
-    assert background.training, "the gated build cannot have been swapped in yet"
-    gated_build.set()
-    background.join_training()
-    assert background.uses_ivf and not background.training
+    assert background.rebuilding, "the gated rebuild cannot have been swapped in yet"
+    threading.Timer(0.2, gated_rebuild.set).start()  # the swap search waits for it
+    background.match(near[:10])  # the 3rd search since the rebuild started (in the frame that began it): swapped in
+    assert not background.rebuilding
     # No lost or resurrected words: same word set as the exact vocabulary, all of them indexed.
     assert set(background.word_ids().tolist()) == set(flat.word_ids().tolist())
-    assert background._ivf.ntotal == len(background) == len(sync) == len(flat)
-    # The same decisions as the synchronous build (same snapshot, same changes in the same order).
     queries = np.concatenate([near, random_binary(rng, 500)])
     decided = background.match(queries)
+    assert len(background._kdtree) == len(flat), "every word is in the trees once a search took the pending ones"
     np.testing.assert_array_equal(decided, sync.match(queries))
-    assert np.mean(decided == flat.match(queries)) >= 0.97
+    assert np.mean(decided == flat.match(queries)) >= 0.9
     gone = np.concatenate([ids[:100], ids[200:300], ids[4500:4700], ids[3900:4100]])
     assert not np.isin(background.match(centres[gone - 1]), gone).any(), "a removed word came back"
     kept = np.concatenate([ids[100:200], ids[4100:4500], ids[4700:5000]])
     assert np.mean(background.match(centres[kept - 1]) == kept) > 0.95, "an added word was lost"
 
 
-def test_build_swapped_in_at_its_frame_whatever_the_load(rng, gated_build):
-    """The IVF swap happens at the ivf_swap_frames-th quantize call after the build started, not
-    when the thread happens to finish: a finished build waits, a slow one is waited for."""
-    params = VocabularyParams(index="ivf", ivf_swap_frames=3)  # index=ivf: builds from 1 000 words
-    centres = random_binary(rng, 1500)
-    outcomes = []
-    for slow in (False, True):
-        vocab = Vocabulary(params, binary=True)
-        vocab.add_words(np.arange(1, 1501), centres)
-        if not slow:
-            gated_build.set()
-            vocab._build.done.wait(30)  # finished, but not swapped before its frame
-        assert vocab.match(centres[:10]).tolist() == list(range(1, 11)) and not vocab.uses_ivf
-        frames = [vocab.quantize(flip_bits(rng, centres[k * 100:(k + 1) * 100], 8)) for k in range(2)]
-        assert not vocab.uses_ivf and vocab.training
-        if slow:
-            threading.Timer(0.2, gated_build.set).start()  # the third frame waits for it
-        frames.append(vocab.quantize(centres[200:300]))
-        assert vocab.uses_ivf and not vocab.training
-        outcomes.append(frames)
-        gated_build.clear()
-    assert outcomes[0][2][0].tolist() == list(range(201, 301))
-
-
-def test_close_and_garbage_collection_do_not_wait_for_training(rng, gated_build):
-    vocab = Vocabulary(VocabularyParams(index="ivf"), binary=True)
-    vocab.add_words(np.arange(1, 1501), random_binary(rng, 1500))
-    assert vocab.training
-    thread = vocab._build.thread
+def test_close_and_garbage_collection_do_not_wait_for_a_rebuild(rng, gated_rebuild):
+    centres, ids = random_binary(rng, 4000), np.arange(1, 4001)
+    vocab = grown_past_a_rebuild(VocabularyParams(), centres, ids)
+    assert vocab.rebuilding
+    thread = vocab._kdtree._rebuild.thread
     collected = weakref.ref(vocab)
     del vocab
     gc.collect()
-    assert collected() is None, "the build thread must not keep the vocabulary alive"
-    gated_build.set()
+    assert collected() is None, "the rebuild thread must not keep the vocabulary alive"
+    gated_rebuild.set()
     thread.join(30)
     assert not thread.is_alive()
-    # close() waits for the pending build and discards it; the vocabulary stays usable.
-    vocab = Vocabulary(VocabularyParams(index="ivf"), binary=True)
-    vocab.add_words(np.arange(1, 1501), random_binary(rng, 1500))
+    # close() waits for the pending rebuild and discards it; the vocabulary stays usable.
+    vocab = grown_past_a_rebuild(VocabularyParams(), centres, ids)
     vocab.close()
     vocab.close()
-    assert not vocab.training and not vocab.uses_ivf and len(vocab) == 1500
-    assert vocab.quantize(random_binary(rng, 5))[1].all()
+    assert not vocab.rebuilding and len(vocab) == 4000
+    assert vocab.match(centres[:50]).tolist() == ids[:50].tolist()
 
 
-def test_background_build_error_is_raised_in_the_main_thread(rng, monkeypatch):
-    def failing_build(*args, **kwargs):
-        raise MemoryError("no memory for k-means")
-    monkeypatch.setattr(vocabulary_module, "_build_ivf", failing_build)
-    vocab = Vocabulary(VocabularyParams(index="ivf", ivf_swap_frames=1), binary=True)
-    vocab.add_words(np.arange(1, 1501), random_binary(rng, 1500))
-    vocab._build.thread.join(30)
+def test_background_rebuild_error_is_raised_in_the_main_thread(rng, monkeypatch):
+    monkeypatch.setattr(kdtree, "SWAP_WORDS_PER_SEARCH", 10**9)  # the swap at rebuild_swap_frames
+    build = kdtree._Forest.build
+
+    def failing_build(self, draws):
+        if threading.current_thread() is not threading.main_thread():
+            raise MemoryError("no memory for the trees")
+        build(self, draws)
+    monkeypatch.setattr(kdtree._Forest, "build", failing_build)
+    centres, ids = random_binary(rng, 4000), np.arange(1, 4001)
+    vocab = grown_past_a_rebuild(VocabularyParams(rebuild_swap_frames=2), centres, ids)
+    vocab._kdtree._rebuild.thread.join(30)
     with pytest.raises(MemoryError):
         vocab.quantize(random_binary(rng, 3))  # the swap frame
-    assert not vocab.training and not vocab.uses_ivf and len(vocab) == 1500
+    assert not vocab.rebuilding and len(vocab) == 4000
 
 
 def test_sift_end_to_end(shared_data):
@@ -583,26 +504,3 @@ def test_float_l2_nndr_uses_distances_not_squares():
     words[0, 0], words[1, 0] = 1.0, -1.2
     vocab.add_words([1, 2], words)
     assert vocab.match(np.zeros((1, 4), np.float32)).tolist() == [1]
-
-
-def test_finished_build_takes_changes_as_they_come_before_its_swap(rng, gated_build):
-    """Once the build thread has finished, every call replays the changes logged so far, so the
-    swap frame does not replay all of them at once; the swapped-in index is the same."""
-    n_words = 5000
-    centres = random_binary(rng, n_words)
-    ids = np.arange(1, n_words + 1)
-    params = VocabularyParams(index="auto", ivf_min_words=4000, ivf_swap_frames=50)
-    sync = Vocabulary(params, binary=True, background_training=False)
-    background = Vocabulary(params, binary=True)
-    for vocab in (sync, background):
-        vocab.add_words(ids[:4000], centres[:4000])
-    gated_build.set()
-    background._build.done.wait(30)
-    for vocab in (sync, background):
-        changes_during_training(vocab, centres, ids)
-    build = background._build
-    assert background.training and build.replayed >= 3 and len(build.log) <= 1
-    background.join_training()
-    queries = np.concatenate([flip_bits(rng, centres, 20), random_binary(rng, 500)])
-    np.testing.assert_array_equal(background.match(queries), sync.match(queries))
-    assert background._ivf.ntotal == len(background) == len(sync)
