@@ -74,12 +74,16 @@ def test_frames_faster_than_publishing_get_every_info_and_the_newest_map(publish
         time.sleep(0.2)
     assert wait_for(lambda: len(out.info.messages) == 3)
     assert [conv.statistics_from_msg(m)["location_id"] for m in out.info.messages] == ["1", "2", "3"]
-    assert [len(m.poses) for m in out.path.messages] == [3]   # the newest map only
-    assert len(out.graph.messages) == 1 and len(pub.latencies_s) == 3
+    # The newest map, not one per frame: the thread may have taken frame 1's map before the round's lock
+    # (a loaded machine wakes it late), never frame 2's.
+    assert wait_for(lambda: out.path.messages and len(out.path.messages[-1].poses) == 3)
+    assert [len(m.poses) for m in out.path.messages] in ([3], [1, 3])
+    assert len(out.graph.messages) == len(out.path.messages) and len(pub.latencies_s) == 3
     info = conv.statistics_from_msg(out.info.messages[-1])
     assert info["node_time_ms/total"] == "1.0" and info["node_frames_dropped"] == "0"
+    published = len(out.path.messages)
     pub.submit(frame(4))
-    assert wait_for(lambda: len(out.path.messages) == 2) and len(out.path.messages[-1].poses) == 4
+    assert wait_for(lambda: len(out.path.messages) == published + 1) and len(out.path.messages[-1].poses) == 4
 
 
 def test_the_grid_is_drawn_from_the_newest_map(publisher):
