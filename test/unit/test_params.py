@@ -30,14 +30,15 @@ def test_defaults_are_the_papers_table_i():
 
 def test_one_detector_for_detect_map_and_the_node():
     """config/rtabmap.yaml (map, demo, the node) keeps detect's loop closure detection (issue 32) but for
-    the two values bench_slam.py measured for SLAM (the raw score and the new words' comparison)."""
+    the three values bench_slam.py measured for SLAM (the raw score, the new words' comparison and the exact
+    word search)."""
     from dataclasses import replace
 
     from rtabmap_ros2.core.params import default_config_path
 
     slam, defaults = Params.from_yaml(default_config_path()), Params()
     assert slam.bayes == replace(defaults.bayes, likelihood="eq1")
-    assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False)
+    assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False, index="flat")
     assert slam.features == defaults.features
 
 
