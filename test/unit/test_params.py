@@ -30,16 +30,16 @@ def test_defaults_are_the_papers_table_i():
 
 def test_one_detector_for_detect_map_and_the_node():
     """config/rtabmap.yaml (map, demo, the node) keeps detect's loop closure detection (issue 32) but for
-    the three values bench_slam.py measured for SLAM (the raw score, the new words' comparison and the exact
-    word search)."""
+    the values bench_slam.py measured for SLAM (the raw score, the new words' comparison, RTAB-Map's
+    features without issue 48's two changes)."""
     from dataclasses import replace
 
     from rtabmap_ros2.core.params import default_config_path
 
     slam, defaults = Params.from_yaml(default_config_path()), Params()
     assert slam.bayes == replace(defaults.bayes, likelihood="eq1")
-    assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False, index="flat")
-    assert slam.features == defaults.features
+    assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False)
+    assert slam.features == replace(defaults.features, roll_normalization=False, describable_corners_only=False)
 
 
 @pytest.mark.parametrize("alias, value, section, field, expected", [
