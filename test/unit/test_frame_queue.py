@@ -4,7 +4,6 @@ first; the same features either way; errors and drops (ros/frame_queue.py; no rc
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -15,8 +14,8 @@ from rtabmap_ros2.core.sensor import SensorFrame
 from rtabmap_ros2.errors import SensorDataError
 from rtabmap_ros2.ros.frame_queue import FEATURES_THREAD, FrameQueue
 from rtabmap_ros2.ros.frame_times import FrameTimes
+from waiting import TIMEOUT_S, wait_for
 
-TIMEOUT_S = 30.0
 
 
 def textured_frame(seed: int, stamp_ns: int) -> SensorFrame:
@@ -40,15 +39,6 @@ class GatedExtractor:
 
     def empty(self):
         return self.inner.empty()
-
-
-def wait_for(condition) -> bool:
-    deadline = time.monotonic() + TIMEOUT_S
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.01)
-    return condition()
 
 
 def test_features_extracted_ahead_are_those_the_worker_would_extract():

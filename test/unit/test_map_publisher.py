@@ -19,8 +19,8 @@ from rtabmap_ros2.core.sensor import LaserScan  # noqa: E402
 from rtabmap_ros2.ros import conversions as conv  # noqa: E402
 from rtabmap_ros2.ros.frame_times import FrameTimes  # noqa: E402
 from rtabmap_ros2.ros.map_publisher import MapPublisher, Outputs, Published  # noqa: E402
+from waiting import wait_for  # noqa: E402
 
-TIMEOUT_S = 30.0
 
 
 class Recorder:
@@ -31,15 +31,6 @@ class Recorder:
 
     def publish(self, msg) -> None:
         self.messages.append(msg)
-
-
-def wait_for(condition) -> bool:
-    deadline = time.monotonic() + TIMEOUT_S
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.01)
-    return condition()
 
 
 def scan() -> LaserScan:
