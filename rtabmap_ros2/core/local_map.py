@@ -6,7 +6,9 @@ graph rooted at the newest node (its odometry pose), so the newest pose never mo
 papers because they keep a frame's optimisation time flat: a new node joined by one link is a
 leaf added in O(n) with the exact optimum (``_leaf_update``); a frame whose loop closures
 RGBD/OptimizeMaxError rejects keeps the last solution as RTAB-Map does
-(``_last_solution_kept``); a re-solve starts warm from the previous solution (``_warm_start``).
+(``_last_solution_kept``); a re-solve starts warm from the previous solution (``_warm_start``)
+and, with ``graph.incremental``, continues it in iSAM2 (``optimizer.IncrementalOptimizer``): a loop
+closure frame then costs what its new links touch, not a solve of the whole local map.
 
 It also keeps, for every node that left the local map (to LTM, or in a map not joined to the
 current one), its last optimised pose in one "world" frame that does not move with the
@@ -33,7 +35,7 @@ from rtabmap_ros2.core.local_grid import LocalGrid
 from rtabmap_ros2.core.loop_validation import fits_inter_session_majority, judged_links, max_error_ratio
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.node_tables import PoseTable
-from rtabmap_ros2.core.optimizer import optimize
+from rtabmap_ros2.core.optimizer import IncrementalOptimizer, optimize
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.sensor import LaserScan
 from rtabmap_ros2.core.registration import assemble_scan_map, refine_neighbor_link
@@ -77,6 +79,10 @@ class LocalMapper:
         self.kept_poses = PoseTable()
         self.T_world_local = transforms.identity()
         self.inactive_links: set[tuple[int, int]] = set()
+        # The last solution kept in iSAM2 for the next loop closure (graph.incremental), and whether
+        # nodes left the local map since the last solve (then it is not worth starting again).
+        self._solver: Optional[IncrementalOptimizer] = None
+        self._nodes_left = False
         # Graph version of the current solution (None: no valid solution to extend), and whether
         # WM changed since (transfer, retrieval): see _leaf_update. _resolve_next: the local map
         # is the last solution kept (_last_solution_kept), not a solution.
@@ -135,6 +141,10 @@ class LocalMapper:
                 self._keep_map_pose(node, pose)
         gone = set(nodes)
         self.links = [link for link in self.links if not {link.from_id, link.to_id} & gone]
+        if gone:
+            self._nodes_left = True
+            if self._solver is not None:
+                self._solver.invalidate()
 
     def grid(self, max_casts: Optional[int] = None) -> Optional[OccupancyGrid]:
         """Occupancy grid of the local map from the nodes' laser scans, or None without scans,
@@ -172,7 +182,10 @@ class LocalMapper:
         the next re-solve starts without them and re-admits those its solution agrees with.
         The initial guess is the previous solution (few iterations) unless it contradicts the
         majority of some pair of sessions' loop closures; then sessions are placed by consensus of
-        their loop closures, for the same reason. The frame's new loop closures are then checked (RTAB-Map's
+        their loop closures, for the same reason. With ``graph.incremental`` the last solution is
+        continued in iSAM2 when it can be (not after a merge placed by consensus, nodes leaving the
+        local map or an undone frame), else solved in batch and iSAM2 started again from that
+        solution. The frame's new loop closures are then checked (RTAB-Map's
         RGBD/OptimizeMaxError): if they put a link more than ``graph.optimize_max_error`` standard
         deviations off (max_error_ratio: a link already off before them counts by how far they
         moved it), they are removed and, as RTAB-Map does, the last solution is kept
@@ -194,10 +207,20 @@ class LocalMapper:
             return chain_poses(root, root_pose, links), links
         previous = self._previous_poses(component)
         guess = _warm_start(root, root_pose, memory.graph, component, previous, planar=False)
+        result = None
         if guess is None or not fits_inter_session_majority(guess, links, memory.map_ids):
             guess = consensus_guess(root, root_pose, links)
-        result = optimize(guess, links, root, self.params.graph, planar=bool(self.planar),
-                          rejected_before=rejected_before)
+        elif self.params.graph.incremental:
+            result = self._incremental().solve(component, links, root, root_pose, guess)
+        if result is None:
+            result = optimize(guess, links, root, self.params.graph, planar=bool(self.planar),
+                              rejected_before=rejected_before)
+            # Started again from this solution, unless nodes are leaving the local map (transfers to
+            # LTM come frame after frame once T_time is reached): iSAM2 cannot drop them, so each
+            # solve would be a batch one plus the restart.
+            if self.params.graph.incremental and not self._nodes_left:
+                self._incremental().reset(result.poses, links, {link.key() for link in result.rejected})
+        self._nodes_left = False
         self.inactive_links = {link.key() for link in result.rejected}
         fresh = [(link, before) for link, before in self.new_loops
                  if link.from_id in component and link.to_id in component]
@@ -215,6 +238,13 @@ class LocalMapper:
                 kept = self._last_solution_kept(root, rejected_before)
                 return kept if kept is not None else self.optimize_component(root)
         return result.poses, links
+
+    def _incremental(self) -> IncrementalOptimizer:
+        """The iSAM2 solution of the local map (made again if the planar mode changed)."""
+        planar = bool(self.planar)
+        if self._solver is None or self._solver.planar != planar:
+            self._solver = IncrementalOptimizer(self.params.graph, planar)
+        return self._solver
 
     def _last_solution_kept(self, root: int, inactive_before: set[tuple[int, int]]
                             ) -> Optional[tuple[dict[int, np.ndarray], list[Link]]]:

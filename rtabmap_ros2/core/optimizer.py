@@ -573,4 +573,213 @@ def _dcs_scale(factor, values) -> float:
     return min(1.0, 2.0 * DCS_PHI / (DCS_PHI + chi2_i))
 
 
-__all__ = ["InformationCheck", "OptimizationResult", "gtsam_information", "information_check", "optimize"]
+# -- incremental (iSAM2) -------------------------------------------------------------------------
+
+# iSAM2 relinearises a variable whose update exceeds this (rad and m). RTAB-Map's OptimizerISAM2 uses
+# 0.01, gtsam's default is 0.1; 0.001 keeps the solution within 1 mm / 1e-4 rad of the batch one
+# (test_local_map_incremental) at about the same time on the simulated sessions (the extra updates
+# below stop earlier).
+ISAM2_RELINEARIZE_THRESHOLD = 0.001
+# Extra iSAM2 updates after the one that added the frame's factors, at most: each relinearises
+# and re-solves the affected part once more (Gauss-Newton steps), until no pose moves by more than
+# ISAM2_CONVERGENCE (m or rad).
+ISAM2_EXTRA_UPDATES = 4
+ISAM2_CONVERGENCE = 1e-4
+
+
+class IncrementalOptimizer:
+    """The local map's optimisation kept between frames with gtsam's iSAM2 (Kaess et al. 2012; as
+    RTAB-Map's OptimizerISAM2, corelib/src/optimizer/OptimizerISAM2.cpp, which keeps one iSAM2 and
+    adds each call's new poses and links): a frame adds its nodes and links to the solution of the
+    frames before instead of solving the whole local map again, so a loop closure frame costs what
+    its new factors touch and the relinearisation they cause, not a solve of the map (issue 50).
+
+    It gives the batch solution of :func:`optimize` (the same factors: DCS on loop closures, the
+    same rejection and re-admission rounds by DCS scale) or none: ``solve`` returns None whenever
+    it cannot continue from what it holds (nodes left the local map, a map merged this frame and
+    placed by consensus, the frame's loop closures were undone), and the caller solves in batch and
+    hands the result to ``reset``. Its poses are in the frame of the node it was started at and are
+    moved rigidly to put the root at its given pose (between factors do not see the gauge).
+    """
+
+    def __init__(self, params: GraphParams, planar: bool) -> None:
+        self.params = params
+        self.planar = planar
+        self._isam = None
+        self._nodes: set[int] = set()
+        self._links: dict[tuple[int, int], Link] = {}  # every link held, active or rejected
+        self._factor: dict[tuple[int, int], int] = {}  # active link key -> iSAM2 factor index
+        self._values = None  # the current estimate (gtsam Values)
+
+    def invalidate(self) -> None:
+        """Forget the solution: the next ``solve`` returns None (the caller solves in batch)."""
+        self._isam = None
+        self._values = None
+
+    def reset(self, poses: dict[int, np.ndarray], links: list[Link], rejected: Collection[tuple[int, int]]) -> None:
+        """Start over from a batch solution: ``poses`` of one connected component, the ``links``
+        optimised among them and the keys of the loop closures that solution ``rejected``."""
+        import gtsam
+
+        used = [link for link in links if link.from_id in poses and link.to_id in poses and link.from_id != link.to_id]
+        isam_params = gtsam.ISAM2Params()
+        isam_params.setRelinearizeThreshold(ISAM2_RELINEARIZE_THRESHOLD)
+        isam_params.relinearizeSkip = 1
+        self._isam = gtsam.ISAM2(isam_params)
+        self._nodes = set(poses)
+        self._links = {link.key(): link for link in used}
+        self._factor = {}
+        values = gtsam.Values()
+        for node_id, pose in zip(poses, _gtsam_poses(np.stack(list(poses.values())), self.planar)):
+            values.insert(node_id, pose)
+        anchor = min(poses)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(self._prior(anchor, poses[anchor]))
+        active = [link for link in used if link.key() not in rejected]
+        for factor in self._factors(active):
+            graph.add(factor)
+        result = self._isam.update(graph, values)
+        self._factor = dict(zip((link.key() for link in active), list(result.getNewFactorsIndices())[1:]))
+        self._values = self._isam.calculateEstimate()
+
+    def solve(self, component: set[int], links: list[Link], root_id: int, root_pose: np.ndarray,
+              guess: dict[int, np.ndarray]) -> OptimizationResult | None:
+        """The optimised poses of ``component`` (every node in ``guess``, root at ``root_pose``) with
+        ``links`` among them, continuing from the last solution; None when that is not possible."""
+        import gtsam
+
+        start = time.perf_counter()
+        if self._isam is None or not self._nodes <= component:
+            return None
+        used = [link for link in links if link.from_id in component and link.to_id in component
+                and link.from_id != link.to_id]
+        by_key = {link.key(): link for link in used}
+        gone = [key for key, link in self._links.items() if by_key.get(key) is not link]
+        if any(not self._links[key].type.is_loop_closure for key in gone):
+            return None  # a neighbour link changed or left: not what a frame does
+        new_nodes = component - self._nodes
+        # The guess is the last solution moved rigidly to the root; into this solution's frame.
+        held = next(iter(self._nodes))
+        T_here_guess = _poses_of_keys(self._values, [held], self.planar)[held] @ transforms.inverse(guess[held])
+        values = gtsam.Values()
+        if new_nodes:
+            ids = sorted(new_nodes)
+            for node_id, pose in zip(ids, _gtsam_poses(np.einsum("ij,njk->nik", T_here_guess,
+                                                                 np.stack([guess[n] for n in ids])), self.planar)):
+                values.insert(node_id, pose)
+        remove = [self._factor.pop(key) for key in gone if key in self._factor]
+        for key in gone:
+            del self._links[key]
+        rejected_keys = {key for key in self._links if key not in self._factor}
+        fresh = [link for key, link in by_key.items() if key not in self._links]
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self._factors(fresh):
+            graph.add(factor)
+        self._update(graph, values, remove, fresh)
+        self._nodes |= new_nodes
+        self._links.update((link.key(), link) for link in fresh)
+        rejected = [self._links[key] for key in rejected_keys]
+        iterations = self._converge()
+        switched_off: list[Link] = []
+        if self.params.robust:
+            rejected, switched_off, more = self._robust_rounds(component, rejected)
+            iterations += more
+        poses = _poses_of(self._values, self.planar)
+        if self.planar:
+            root_pose = transforms.project_planar(root_pose)
+        align = root_pose @ transforms.inverse(poses[root_id])
+        stacked = np.einsum("ij,njk->nik", align, np.stack(list(poses.values())))
+        return OptimizationResult(dict(zip(poses, stacked)), float("nan"), float("nan"), iterations, rejected,
+                                  time.perf_counter() - start, switched_off)
+
+    def _prior(self, node_id: int, pose: np.ndarray):
+        import gtsam
+
+        prior = gtsam.PriorFactorPose2 if self.planar else gtsam.PriorFactorPose3
+        return prior(node_id, _to_gtsam(pose, self.planar),
+                     gtsam.noiseModel.Isotropic.Sigma(3 if self.planar else 6, ROOT_PRIOR_SIGMA))
+
+    def _factors(self, links: list[Link]) -> list:
+        """The factors of ``links`` as :func:`optimize` makes them (cached; DCS on loop closures)."""
+        plain = _plain_factors(links, self.planar)
+        return [_cached("robust factor", link, self.planar, _robust_factor)
+                if self.params.robust and link.type.is_loop_closure else plain[id(link)] for link in links]
+
+    def _update(self, graph, values, remove: list[int], added: list[Link]) -> None:
+        result = self._isam.update(graph, values, remove)
+        self._factor.update(zip((link.key() for link in added), list(result.getNewFactorsIndices())))
+        self._values = self._isam.calculateEstimate()
+
+    def _converge(self) -> int:
+        """Further iSAM2 updates (relinearisation and Gauss-Newton steps) until the poses settle."""
+        before = _pose_vectors(self._values, self.planar)
+        for done in range(1, ISAM2_EXTRA_UPDATES + 1):
+            self._isam.update()
+            self._values = self._isam.calculateEstimate()
+            after = _pose_vectors(self._values, self.planar)
+            if np.abs(after - before).max(initial=0.0) < ISAM2_CONVERGENCE:
+                return done
+            before = after
+        return ISAM2_EXTRA_UPDATES
+
+    def _robust_rounds(self, component: set[int], rejected: list[Link]) -> tuple[list[Link], list[Link], int]:
+        """:func:`optimize`'s robust rounds on the incremental solution: loop closures whose DCS
+        scale is below ``robust_reject_scale`` leave it (never a bridge), rejected ones that agree
+        again come back; returns (rejected, switched off, iterations)."""
+        import gtsam
+
+        threshold = self.params.robust_reject_scale
+        loops = [link for link in self._links.values() if link.type.is_loop_closure]
+        plain = _plain_factors(loops, self.planar)
+        iterations = 0
+        for _ in range(ROBUST_ROUNDS):
+            scales = {link.key(): _dcs_scale(plain[id(link)], self._values) for link in loops}
+            out = {link.key() for link in rejected}
+            bad = sorted((link for link in loops if link.key() not in out and scales[link.key()] < threshold),
+                         key=lambda link: scales[link.key()])
+            good_again = [link for link in rejected if scales[link.key()] >= threshold]
+            if not bad and not good_again:
+                break
+            rejected = [link for link in rejected if scales[link.key()] < threshold]
+            kept = [link for key, link in self._links.items() if key not in {r.key() for r in rejected}]
+            dropped = []
+            for link in bad:  # worst first; a bridge stays (nothing in the graph contradicts it)
+                trial = [k for k in kept if k is not link]
+                if len(connected_components(component, trial)) == 1:
+                    kept, dropped = trial, dropped + [link]
+            if not dropped and not good_again:
+                break
+            rejected += dropped
+            graph = gtsam.NonlinearFactorGraph()
+            for factor in self._factors(good_again):
+                graph.add(factor)
+            self._update(graph, gtsam.Values(), [self._factor.pop(link.key()) for link in dropped], good_again)
+            iterations += 1 + self._converge()
+        else:
+            scales = {link.key(): _dcs_scale(plain[id(link)], self._values) for link in loops}
+        out = {link.key() for link in rejected}
+        switched_off = [link for link in loops if link.key() not in out and scales[link.key()] < threshold]
+        return rejected, switched_off, iterations
+
+
+def _poses_of_keys(values, keys: list[int], planar: bool) -> dict[int, np.ndarray]:
+    """4x4 poses of ``keys`` in ``values``."""
+    if not planar:
+        return {k: np.asarray(values.atPose3(k).matrix(), dtype=np.float64) for k in keys}
+    poses = {}
+    for k in keys:
+        pose = values.atPose2(k)
+        poses[k] = transforms.from_xy_yaw(pose.x(), pose.y(), pose.theta())
+    return poses
+
+
+def _pose_vectors(values, planar: bool) -> np.ndarray:
+    """(n, 3) x, y, yaw or (n, 12) rotation and translation of every pose in ``values`` (key order)."""
+    import gtsam
+
+    return (gtsam.utilities.extractPose2(values).reshape(-1, 3) if planar
+            else gtsam.utilities.extractPose3(values).reshape(-1, 12))
+
+
+__all__ = ["IncrementalOptimizer", "InformationCheck", "OptimizationResult", "gtsam_information",
+           "information_check", "optimize"]

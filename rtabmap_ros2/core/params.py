@@ -367,6 +367,10 @@ class GraphParams:
                         "rtabmap-ros2 optimize)")
     iterations: int = _p(100, "Maximum optimiser iterations", "iterations")
     robust: bool = _p(True, "Dynamic covariance scaling on loop closures; drop those it rejects")
+    incremental: bool = _p(True, "Local map: continue the last solution with gtsam's iSAM2 (the frame's nodes and links "
+                           "added to it) instead of solving the whole local map again at a loop closure; a batch "
+                           "solve (the optimizer above) whenever it cannot continue: nodes left the local map, "
+                           "a map merged, loop closures undone")
     robust_reject_scale: float = _p(
         0.1, "Robust: a loop closure whose DCS scale ends below this is dropped as inconsistent", "ratio")
     optimize_max_error: float = _p(

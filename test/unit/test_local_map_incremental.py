@@ -14,7 +14,7 @@ import pytest
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import LinkType, chain_poses
-from rtabmap_ros2.core.optimizer import optimize
+from rtabmap_ros2.core.optimizer import IncrementalOptimizer, optimize
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.rtabmap import Rtabmap
 from rtabmap_ros2.core.signature import Signature
@@ -24,6 +24,10 @@ NODES = 300
 # Same solution: the batch solver's own convergence tolerance is about this.
 TOLERANCE_M = 1e-4
 TOLERANCE_RAD = 1e-5
+# Incremental (iSAM2) against batch (Levenberg-Marquardt): two iterative solutions of one graph, each
+# stopped at its own convergence test.
+INCREMENTAL_TOLERANCE_M = 1e-3
+INCREMENTAL_TOLERANCE_RAD = 1e-4
 
 
 def _feed(rtabmap: Rtabmap, poses: dict, links: list, nodes: list[int], on_frame) -> None:
@@ -177,6 +181,15 @@ def test_a_rejected_loop_closure_keeps_the_last_solution_and_the_next_frame_re_s
         return real_optimize(*args, **kwargs)
 
     monkeypatch.setattr(local_map_module, "optimize", counted)
+    real_incremental = IncrementalOptimizer.solve
+
+    def counted_incremental(self, component, links, root_id, *args, **kwargs):
+        result = real_incremental(self, component, links, root_id, *args, **kwargs)
+        if result is not None:  # None: the caller solves in batch (counted above)
+            solves.append(root_id)
+        return result
+
+    monkeypatch.setattr(IncrementalOptimizer, "solve", counted_incremental)
     rtabmap = Rtabmap(Params(), tmp_path / "intel.db")
     try:
         *before, last = nodes
@@ -205,5 +218,123 @@ def test_a_rejected_loop_closure_keeps_the_last_solution_and_the_next_frame_re_s
         assert solves == [last + 1]
         dt, dr = _difference(rtabmap.local.poses, _batch(rtabmap, last + 1))
         assert dt < TOLERANCE_M and dr < TOLERANCE_RAD, (dt, dr)
+    finally:
+        rtabmap.close()
+
+
+def _intel(shared_data) -> tuple[dict, list]:
+    """The intel pose graph with location ids from 1, its first NODES nodes."""
+    poses, links, _ = read_g2o(shared_data / "posegraphs" / "intel.g2o")
+    poses = {n + 1: T for n, T in sorted(poses.items())[:NODES]}
+    links = [replace(l, from_id=l.from_id + 1, to_id=l.to_id + 1) for l in links]
+    return poses, [l for l in links if l.from_id in poses and l.to_id in poses]
+
+
+def _count_solves(monkeypatch) -> tuple[list[int], list[int]]:
+    """Roots of the batch solves and of the incremental (iSAM2) solves the local map makes."""
+    import rtabmap_ros2.core.local_map as local_map_module
+
+    batch, incremental = [], []
+    real_optimize, real_incremental = local_map_module.optimize, IncrementalOptimizer.solve
+
+    def counted(*args, **kwargs):
+        batch.append(args[2])
+        return real_optimize(*args, **kwargs)
+
+    def counted_incremental(self, component, links, root_id, *args, **kwargs):
+        result = real_incremental(self, component, links, root_id, *args, **kwargs)
+        if result is not None:
+            incremental.append(root_id)
+        return result
+
+    monkeypatch.setattr(local_map_module, "optimize", counted)
+    monkeypatch.setattr(IncrementalOptimizer, "solve", counted_incremental)
+    return batch, incremental
+
+
+def test_loop_closure_frames_continue_the_last_solution_and_equal_the_batch_solve(shared_data, tmp_path,
+                                                                                  monkeypatch):
+    """graph.incremental (issue 50): after the first loop closure, a loop closure frame adds its nodes
+    and links to the last solution (iSAM2) instead of solving the whole local map again, and its
+    local map is the batch solution of the same graph."""
+    poses, links = _intel(shared_data)
+    batch, incremental = _count_solves(monkeypatch)
+    checked = []
+    rtabmap = Rtabmap(Params(), tmp_path / "intel.db")
+    try:
+        def on_frame(node: int) -> None:
+            if rtabmap.local.new_loops and node % 3 == 0:
+                dt, dr = _difference(rtabmap.local.poses, _batch(rtabmap, node))
+                checked.append(node)
+                assert dt < INCREMENTAL_TOLERANCE_M and dr < INCREMENTAL_TOLERANCE_RAD, (node, dt, dr)
+
+        _feed(rtabmap, poses, links, sorted(poses), on_frame)
+    finally:
+        rtabmap.close()
+    assert len(batch) == 1  # the first loop closure: nothing to continue from yet
+    assert len(incremental) >= 20 and len(checked) >= 5
+    # Without it, every loop closure frame is a batch solve, to the same local map.
+    batch.clear()
+    incremental.clear()
+    rtabmap = Rtabmap(Params().with_value("graph.incremental", False), tmp_path / "intel_batch.db")
+    try:
+        _feed(rtabmap, poses, links, sorted(poses), lambda node: None)
+    finally:
+        rtabmap.close()
+    assert not incremental and len(batch) >= 20
+
+
+def _square_laps(laps: int = 2, side: int = 10) -> tuple[dict, list]:
+    """A robot driving ``laps`` times round a 5 m square (0.5 m steps, exact odometry links of 1 cm /
+    0.6 deg), each pose of the later laps closing a loop to the same corner of the first lap (3 cm)."""
+    from rtabmap_ros2.core.graph import Link, default_information
+
+    poses, links, k = {}, [], 0
+    for _ in range(laps):
+        for corner in range(4):
+            for step in range(side):
+                k += 1
+                yaw = corner * np.pi / 2
+                x0, y0 = [(0, 0), (5, 0), (5, 5), (0, 5)][corner]
+                poses[k] = transforms.from_xy_yaw(x0 + 0.5 * step * np.cos(yaw), y0 + 0.5 * step * np.sin(yaw), yaw)
+    for k in sorted(poses)[1:]:
+        links.append(Link(k - 1, k, LinkType.NEIGHBOR, transforms.relative(poses[k - 1], poses[k]),
+                          default_information(1e-4)))
+        if k > 4 * side and k % 3 == 0:
+            old = (k - 1) % (4 * side) + 1
+            links.append(Link(k, old, LinkType.LOOP_INTRA, transforms.relative(poses[k], poses[old]),
+                              default_information(1e-3)))
+    return poses, links
+
+
+def test_the_incremental_solve_drops_a_loop_closure_the_rest_of_the_graph_contradicts(tmp_path, monkeypatch):
+    """The robust rounds on the incremental solution: a false loop closure (1.5 m off) that the
+    odometry and the true loop closures contradict is switched out of it by its DCS scale, as the
+    batch solve does, and the local map is the batch solution without it; a later frame whose true
+    loop closures agree with it does not bring it back. (RGBD/OptimizeMaxError off: it would undo
+    the frame first.)"""
+    from rtabmap_ros2.core.graph import Link, default_information
+
+    poses, links = _square_laps()
+    nodes = sorted(poses)
+    new = nodes[-9]  # a loop closure frame of the second lap
+    batch, incremental = _count_solves(monkeypatch)
+    rtabmap = Rtabmap(Params().with_value("graph.optimize_max_error", 0.0), tmp_path / "square.db")
+    try:
+        _feed(rtabmap, poses, links, [n for n in nodes if n < new], lambda node: None)
+        old = 15
+        false = Link(new, old, LinkType.LOOP_INTRA,
+                     transforms.relative(poses[new], poses[old]) @ transforms.from_xy_yaw(1.5, 0.0, 0.0),
+                     default_information(1e-3))
+        incremental.clear()
+        _feed(rtabmap, poses, links + [false], [new], lambda node: None)
+        assert incremental == [new]
+        assert false.key() in rtabmap.local.inactive_links
+        assert false.key() not in {l.key() for l in rtabmap.local.links}
+        dt, dr = _difference(rtabmap.local.poses, _batch(rtabmap, new))
+        assert dt < INCREMENTAL_TOLERANCE_M and dr < INCREMENTAL_TOLERANCE_RAD, (dt, dr)
+        _feed(rtabmap, poses, links, [n for n in nodes if n > new], lambda node: None)
+        assert false.key() in rtabmap.local.inactive_links
+        assert len(batch) == 1
     finally:
         rtabmap.close()
