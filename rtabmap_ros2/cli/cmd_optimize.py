@@ -4,8 +4,9 @@ The root (held fixed) is the first vertex of the file (the lowest id), as is sta
 benchmarks; files with edges only are initialised by chaining the edges. The default solver,
 ``auto``, is GTSAM's Levenberg-Marquardt while its damping works and Powell's dogleg (one
 factorisation per iteration, failed steps retried along it) once a damping has failed in two
-iterations running: on cubicle.g2o LM alone factorises 201 times and stops at its 100 iterations
-1.3 % above the optimum, ``auto`` reaches it in 2 + 9 iterations (``bench/bench_optimizers.py``).
+iterations running: on cubicle.g2o LM alone takes 39 iterations, each failed damping costing a
+factorisation, ``auto`` reaches the same optimum in 2 + 9 (``bench/bench_optimizers.py``). 3D files
+are read as GTSAM's ``readG2o`` reads them (:mod:`rtabmap_ros2.io.g2o`), so the chi2 is GTSAM's.
 Prints the initial and final chi2 (sum of whitened squared errors), the iterations and the time.
 OUT is IN with the optimised vertices: the vertex lines first, then IN's other lines as they are
 (edges byte for byte; with ``--robust``, the rejected loop closures left out).

@@ -3,19 +3,15 @@
 Conventions of the format (g2o's ``types_slam2d`` / ``types_slam3d``): ``VERTEX_SE2 id x y theta``,
 ``EDGE_SE2 i j dx dy dtheta`` + the upper triangle of the 3x3 information over (x, y, theta);
 ``VERTEX_SE3:QUAT id x y z qx qy qz qw``, ``EDGE_SE3:QUAT i j dx dy dz qx qy qz qw`` + the upper
-triangle of the 6x6 information over g2o's error (x, y, z, qx, qy, qz). The quaternion's vector
-part is about half the rotation angle, so information on (qx, qy, qz) is 4 x information on the
-angles: links read here carry the file's matrix scaled to our (x, y, z, roll, pitch, yaw)
-(:data:`G2O_QUAT_PER_ANGLE`), and the writer scales it back. (gtsam's own ``readG2o`` reads the
-quaternion information as on the angles, 4 x g2o's weight: a different objective on 3D files.)
+triangle of the 6x6 information, read as information on (x, y, z) and the rotation's angles
+(our links' (x, y, z, roll, pitch, yaw) information, written back as it is), as gtsam's
+``readG2o`` reads it. (g2o itself puts the rotation error on the quaternion's vector part, about
+half the angle: 1/4 of this weight on rotations. Issue 50 measures ``optimize`` by GTSAM's chi2,
+so a file means here what it means to GTSAM, and the optimum is GTSAM's.)
 
 Information matrices are kept as the file gives them, positive definite or not (the optimiser
 uses them as gtsam does: :func:`rtabmap_ros2.core.optimizer.information_check`); the reader warns
-once, naming the edges that are not positive definite. On an indefinite 3D edge the optimiser's
-factor is gtsam's factor of the file's matrix with the rotation columns halved (gtsam's reading on
-g2o's error) when the Cholesky stops on a translation pivot (they come after the rotation ones in
-gtsam's order); when it stops on a rotation pivot, the raw rotation entries it keeps are scaled by
-1/4 instead (the factor of the scaled matrix).
+once, naming the edges that are not positive definite.
 
 Reading is done per element at once: the lines are grouped by tag, each group converted by numpy
 in one call; only when that fails is the group read again line by line, to name the bad line.
@@ -35,9 +31,6 @@ from rtabmap_ros2.errors import OptimizationError
 
 logger = logging.getLogger(__name__)
 
-# g2o EDGE_SE3:QUAT errors are (x, y, z, qx, qy, qz): the quaternion's vector part is about half
-# the rotation angle, so information on qxyz = 4 x information on the angles (cross terms x 2).
-G2O_QUAT_PER_ANGLE = 0.5
 # Edges that are not positive definite named in the reader's warning (the rest are counted).
 G2O_EDGES_NAMED = 10
 # Numbers after the tag of each g2o element: (ids, floats).
@@ -49,11 +42,6 @@ G2O_IGNORED = ("FIX", "PARAMS_SE3OFFSET")
 LARGEST_EXACT_ID = 2 ** 53
 # Digits of every number written (a float64 round-trips at 17; 9 keep 1e-9 relative).
 G2O_DIGITS = 9
-
-
-def _se3_g2o_scaling() -> np.ndarray:
-    """Diagonal of the map from our (x, y, z, roll, pitch, yaw) errors to g2o's (x, y, z, qx, qy, qz)."""
-    return np.array([1.0, 1.0, 1.0] + [G2O_QUAT_PER_ANGLE] * 3)
 
 
 def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
@@ -130,8 +118,7 @@ def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
         rows, cols = np.ix_(POSE2_FROM_OURS, POSE2_FROM_OURS)
         information[:, rows, cols] = info
     else:
-        scale = _se3_g2o_scaling()
-        information = info * np.outer(scale, scale)
+        information = info
     pairs = ids.tolist()
     kinds = np.where(np.abs(ids[:, 0] - ids[:, 1]) == 1, 0, 1).tolist()
     link_types = (LinkType.NEIGHBOR, LinkType.LOOP_INTRA)
@@ -301,8 +288,6 @@ def _edge_lines(links: list[Link], planar: bool) -> list[str]:
         order = POSE2_FROM_OURS
         values = transforms.to_xy_yaws(steps)
     else:
-        scale = 1.0 / _se3_g2o_scaling()
-        info = info * np.outer(scale, scale)
         order = list(range(6))
         values = np.column_stack([steps[:, :3, 3], transforms.quats_xyzw(steps)]) if links else np.zeros((0, 7))
     rows, cols = np.triu_indices(len(order))
@@ -320,4 +305,4 @@ def _write_lines(path, lines: list[str]) -> None:
         raise OptimizationError(f"cannot write g2o file {path}: {exc.strerror}") from exc
 
 
-__all__ = ["G2O_QUAT_PER_ANGLE", "read_g2o", "write_g2o", "write_optimised"]
+__all__ = ["read_g2o", "write_g2o", "write_optimised"]

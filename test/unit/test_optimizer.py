@@ -346,10 +346,9 @@ def _truth_graph(rng, planar: bool):
     return truth, start, edges
 
 
-def _g2o_text(poses, edges, planar: bool, quat_information_scale: float) -> str:
+def _g2o_text(poses, edges, planar: bool) -> str:
     """A g2o file of ``poses`` and ``edges`` (every INDEFINITE_EVERY-th edge's information made
-    indefinite), written here; SE3 rotation information on the quaternion's vector part times
-    ``quat_information_scale`` (4: g2o's meaning for angles' information; 1: gtsam.readG2o's)."""
+    indefinite), written here; SE3 rotation information on the angles (gtsam.readG2o's meaning)."""
     lines = []
     for i, T in sorted(poses.items()):
         if planar:
@@ -363,7 +362,7 @@ def _g2o_text(poses, edges, planar: bool, quat_information_scale: float) -> str:
             rotation = 2
             measured = transforms.to_xy_yaw(Z)
         else:
-            info = np.diag([TRUTH_SIGMA_M ** -2] * 3 + [quat_information_scale * TRUTH_SIGMA_RAD ** -2] * 3)
+            info = np.diag([TRUTH_SIGMA_M ** -2] * 3 + [TRUTH_SIGMA_RAD ** -2] * 3)
             rotation = 3
             measured = [*Z[:3, 3], *transforms.quat_xyzw(Z)]
         if k % INDEFINITE_EVERY == 0:
@@ -393,15 +392,12 @@ def test_ground_truth_with_indefinite_information_as_gtsam_reads_it(tmp_path, rn
     """A graph made from known true poses with small noise, every 4th edge's information
     indefinite, read from a g2o file as ``rtabmap-ros2 optimize`` reads it: the optimum is within
     the stated tolerance of the truth, and its chi2 on gtsam's objective is no higher than a bare
-    gtsam LM's from the same start. gtsam reads SE3 rotation information as on the angles (4 x
-    g2o's weight), so its copy of the 3D file carries the rotation information scaled to mean the
-    same (the objective ours minimises on the g2o file); on SE2 both read the same file."""
+    gtsam LM's from the same start and file (both read SE3 rotation information as on the angles)."""
     gtsam = pytest.importorskip("gtsam")
     truth, start, edges = _truth_graph(rng, planar)
-    ours_file, gtsam_file = tmp_path / "graph.g2o", tmp_path / "graph_gtsam.g2o"
-    ours_file.write_text(_g2o_text(start, edges, planar, quat_information_scale=4.0))
-    gtsam_file.write_text(_g2o_text(start, edges, planar, quat_information_scale=1.0))
-    poses, links, read_planar = read_g2o(ours_file)
+    path = tmp_path / "graph.g2o"
+    path.write_text(_g2o_text(start, edges, planar))
+    poses, links, read_planar = read_g2o(path)
     indefinite = len(edges) // INDEFINITE_EVERY
     assert read_planar == planar and f"{indefinite} edge(s) have an information matrix that is not positive definite" \
         in caplog.text
@@ -410,7 +406,7 @@ def test_ground_truth_with_indefinite_information_as_gtsam_reads_it(tmp_path, rn
     angle_error = max(transforms.rotation_angle(transforms.relative(truth[k], result.poses[k])) for k in truth)
     start_error = max(np.linalg.norm(start[k][:3, 3] - truth[k][:3, 3]) for k in truth)
 
-    graph, values = _bare_gtsam(gtsam_file, planar)
+    graph, values = _bare_gtsam(path, planar)
     ours_values = gtsam.Values()
     for k, T in result.poses.items():
         ours_values.insert(k, gtsam.Pose2(*transforms.to_xy_yaw(T)) if planar else gtsam.Pose3(T))
