@@ -35,8 +35,8 @@ from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis
 from rtabmap_ros2.core.graph import Link, LinkType, agree, agree_many, default_information, loop_type, residuals
 from rtabmap_ros2.core.grid import scan_conflict
 from rtabmap_ros2.core.memory import Memory
-from rtabmap_ros2.core.params import Params, RegistrationParams
-from rtabmap_ros2.core.registration import assemble_scan_map, epipolar_check, icp_2d, register, uses_pnp
+from rtabmap_ros2.core.params import Params
+from rtabmap_ros2.core.registration import assemble_scan_map, epipolar_check, icp_2d, register
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.statistics import Statistics
 
@@ -114,17 +114,14 @@ class LoopValidator:
             return Link(current.id, old.id, kind, transforms.identity(),
                         default_information(self.params.graph.loop_closure_variance))
         params = replace(self.params.registration, planar=bool(self.local.planar))
-        reg = register(current, old, params, descriptors=self._descriptors(current, old, params))
+        reg = register(current, old, params, descriptors=self._descriptors(current, old))
         return Link(current.id, old.id, kind, reg.T_from_to, reg.information)
 
-    def _descriptors(self, current: Signature, old: Signature,
-                     params: RegistrationParams) -> Optional[tuple[np.ndarray, np.ndarray]]:
-        """The two nodes' descriptors for PnP's guided matching: each keypoint's word's, from the
-        vocabulary (the descriptor that made the word, within the NNDR test of the keypoint's own);
-        None when the guided matching is off or a word is no longer in the vocabulary."""
-        icp = params.icp_refine and current.scan is not None and old.scan is not None
-        if not uses_pnp(params, icp) or params.guided_window <= 0:
-            return None
+    def _descriptors(self, current: Signature, old: Signature) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """The two nodes' descriptors, to pair their features (registration.matched_pairs, RTAB-Map's
+        Vis/CorType 0) and for PnP's guided matching: each keypoint's word's, from the vocabulary
+        (the descriptor that made the word, within the NNDR test of the keypoint's own); None when a
+        word is no longer in the vocabulary (then the shared words pair them)."""
         vocabulary = self.memory.vocabulary
         if not (vocabulary.present(current.word_ids).all() and vocabulary.present(old.word_ids).all()):
             return None

@@ -82,6 +82,8 @@ GUIDED_MIN_INLIERS = 8
 # neighbour ratio test against the next candidate in the window.
 GUIDED_MAX_HAMMING = 64
 GUIDED_NNDR = 0.8
+# NNDR of the two nodes' descriptor matching (RTAB-Map's Vis/CorNNDR default).
+CORRESPONDENCE_NNDR = 0.8
 # Guided matching: the keypoints nearest to a projection that are compared (a 10 px window at GFTT's
 # 7 px minimum distance between corners holds a few).
 GUIDED_CANDIDATES = 4
@@ -203,6 +205,13 @@ def kabsch(from_points: np.ndarray, to_points: np.ndarray, weights: np.ndarray |
     return T[0] if single else T
 
 
+def feature_pairs(from_sig: Signature, to_sig: Signature,
+                  descriptors: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs a loop closure transform is estimated from: :func:`matched_pairs` with the two
+    nodes' ``descriptors``, :func:`word_pairs` without."""
+    return word_pairs(from_sig, to_sig) if descriptors is None else matched_pairs(from_sig, to_sig, descriptors)
+
+
 def word_pairs(from_sig: Signature, to_sig: Signature) -> tuple[np.ndarray, np.ndarray]:
     """Feature indices of the words occurring exactly once in both signatures (RTAB-Map's
     findPairsUnique): ``(i_from, i_to)``, each (K,) int64, in word id order."""
@@ -212,6 +221,56 @@ def word_pairs(from_sig: Signature, to_sig: Signature) -> tuple[np.ndarray, np.n
     i_from = np.fromiter((from_words[w] for w in common), dtype=np.int64, count=len(common))
     i_to = np.fromiter((to_words[w] for w in common), dtype=np.int64, count=len(common))
     return i_from, i_to
+
+
+def matched_pairs(from_sig: Signature, to_sig: Signature,
+                  descriptors: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Feature indices of the two nodes' features that match each other (RTAB-Map's Vis/CorType 0,
+    RegistrationVis.cpp: one node's descriptors made a dictionary, the other's quantised into it
+    with the NNDR test, Vis/CorNNDR 0.8), kept when unique in both: ``(i_from, i_to)``.
+
+    The pairs do not depend on which word the vocabulary's approximate search gave each feature:
+    two views of a place whose features fell on neighbouring words still pair (with the kd-tree
+    search, seed 4242's last session shared 0-16 words with the place it revisited, below the 20
+    inliers, while its Bayes filter was sure of the place). Two features of one word have the
+    same descriptor (``descriptors`` are the words'), so every pair of :func:`word_pairs` is one of
+    these (a superset of them). Binary descriptors only (Hamming); float ones return
+    :func:`word_pairs`.
+    """
+    desc_from, desc_to = (np.ascontiguousarray(d) for d in descriptors)
+    if desc_from.dtype != np.uint8 or desc_to.dtype != np.uint8:
+        return word_pairs(from_sig, to_sig)
+    if len(desc_from) < 2 or not len(desc_to):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(desc_to, desc_from, k=2)
+    i_to = np.fromiter((m[0].queryIdx for m in matches), np.int64, len(matches))
+    i_from = np.fromiter((m[0].trainIdx for m in matches), np.int64, len(matches))
+    d1 = np.fromiter((m[0].distance for m in matches), np.float64, len(matches))
+    d2 = np.fromiter((m[1].distance for m in matches), np.float64, len(matches))
+    keep = (d1 <= CORRESPONDENCE_NNDR * d2) & (d2 > 0)
+    # A feature whose word occurs twice in its node pairs with nothing (RTAB-Map keeps the words
+    # found once on each side).
+    keep &= _found_once(from_sig.word_ids)[i_from] & _found_once(to_sig.word_ids)[i_to]
+    i_from, i_to, d1 = i_from[keep], i_to[keep], d1[keep]
+    # A from feature several to features chose pairs with none of them (RTAB-Map's rule: a word
+    # found twice in the other node), unless the nearest shares its word (distance 0): a shared
+    # word always keeps its pair.
+    order = np.lexsort((d1, i_from))
+    i_from, i_to, d1 = i_from[order], i_to[order], d1[order]
+    first = np.ones(len(i_from), bool)
+    first[1:] = i_from[1:] != i_from[:-1]
+    last = np.ones(len(i_from), bool)
+    last[:-1] = i_from[1:] != i_from[:-1]
+    runner_up = np.full(len(i_from), np.inf)
+    runner_up[:-1] = np.where(last[:-1], np.inf, d1[1:])
+    keep = first & (np.isinf(runner_up) | ((d1 == 0) & (runner_up > 0)))
+    return i_from[keep], i_to[keep]
+
+
+def _found_once(word_ids: np.ndarray) -> np.ndarray:
+    """Per feature, whether its word occurs once in the node."""
+    _, inverse, counts = np.unique(np.asarray(word_ids), return_inverse=True, return_counts=True)
+    return counts[inverse] == 1
 
 
 def epipolar_check(from_sig: Signature, to_sig: Signature, min_pairs: int, max_distance_px: float,
@@ -257,14 +316,16 @@ def _hull_area(points: np.ndarray) -> float:
     return float(cv2.contourArea(cv2.convexHull(np.asarray(points, dtype=np.float32))))
 
 
-def correspondences(from_sig: Signature, to_sig: Signature) -> tuple[np.ndarray, np.ndarray]:
-    """3D-3D correspondences of the words occurring exactly once in both signatures.
+def correspondences(from_sig: Signature, to_sig: Signature,
+                    descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """3D-3D correspondences: the two nodes' matching features (:func:`matched_pairs`) with
+    ``descriptors``, else the words occurring exactly once in both signatures.
 
     Returns:
         ``(from_points, to_points)``, each (K,3) float64 (m) in its node's base frame, only
         pairs with finite positions in both.
     """
-    i_from, i_to = word_pairs(from_sig, to_sig)
+    i_from, i_to = feature_pairs(from_sig, to_sig, descriptors)
     if not len(i_from):
         return np.zeros((0, 3)), np.zeros((0, 3))
     p_from = np.asarray(from_sig.points3d, dtype=np.float64)[i_from]
@@ -375,7 +436,7 @@ def register(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
         # Loop closure transform by PnP (RTAB-Map's Vis/EstimationType 1).
         result = register_pnp(from_sig, to_sig, params, descriptors)
     else:
-        result = _register_3d(from_sig, to_sig, params, rng)
+        result = _register_3d(from_sig, to_sig, params, rng, descriptors)
     if icp:
         result = _refine_with_icp(from_sig, to_sig, result, params)
     return result
@@ -390,13 +451,15 @@ def uses_pnp(params: RegistrationParams, icp_refined: bool) -> bool:
 
 
 def _register_3d(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
-                 rng: np.random.Generator | None) -> Registration:
-    """The 2014 paper's estimate (Vis/EstimationType 0): RANSAC on 3D-3D word pairs, reweighted refit."""
+                 rng: np.random.Generator | None,
+                 descriptors: tuple[np.ndarray, np.ndarray] | None = None) -> Registration:
+    """The 2014 paper's estimate (Vis/EstimationType 0): RANSAC on 3D-3D pairs, reweighted refit."""
     rng = np.random.default_rng(DEFAULT_SEED) if rng is None else rng
-    p_from, p_to = correspondences(from_sig, to_sig)
+    p_from, p_to = correspondences(from_sig, to_sig, descriptors)
     if len(p_from) < max(3, params.min_inliers):
+        what = "features matched" if descriptors is not None else "words"
         raise RegistrationError(
-            f"nodes {from_sig.id} -> {to_sig.id}: only {len(p_from)} correspondences (words unique in "
+            f"nodes {from_sig.id} -> {to_sig.id}: only {len(p_from)} correspondences ({what} unique in "
             f"both signatures with depth) < min_inliers={params.min_inliers}: loop closure rejected")
     # Loop closure transform (2014 §II-A): RANSAC on the 3D visual word correspondences.
     T, mask = ransac_rigid(p_from, p_to, params.inlier_distance, params.ransac_iterations, rng)
@@ -478,7 +541,7 @@ def register_pnp(from_sig: Signature, to_sig: Signature, params: RegistrationPar
             or a translation variance above ``pnp_max_variance``.
     """
     cam_from, cam_to = from_sig.camera, to_sig.camera
-    i_from, i_to = word_pairs(from_sig, to_sig)
+    i_from, i_to = feature_pairs(from_sig, to_sig, descriptors)
     pairs = _WordPairs.of(from_sig, to_sig, i_from, i_to)
     T, inliers = _pnp_estimate(pairs, cam_from, cam_to, params, f"nodes {from_sig.id} -> {to_sig.id}")
     if params.guided_window > 0 and descriptors is not None and int(inliers.sum()) >= GUIDED_MIN_INLIERS:

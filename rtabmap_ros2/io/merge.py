@@ -478,8 +478,14 @@ def _verify_again(db: Database, new_id: int, old_id: int, params: Params) -> Opt
         new, old = db.load_signatures([new_id, old_id])
     except DatabaseError:
         return f"node {new_id} or {old_id} is no longer in the map"
+    # The two nodes' features paired by their words' descriptors, as mapping pairs them.
+    ids = np.concatenate([new.word_ids, old.word_ids]).tolist()
+    words = db.load_words(ids)
+    descriptors = None
+    if len(new.word_ids) and len(old.word_ids) and all(w in words for w in ids):
+        descriptors = tuple(np.stack([words[w] for w in sig.word_ids.tolist()]) for sig in (new, old))
     try:
-        register(new, old, params.registration)   # planar as mapping used it (registration.planar)
+        register(new, old, params.registration, descriptors=descriptors)   # planar as mapping used it
     except RegistrationError as exc:
         return str(exc)
     return None
