@@ -250,27 +250,24 @@ def matched_pairs(from_sig: Signature, to_sig: Signature,
     keep = (d1 <= CORRESPONDENCE_NNDR * d2) & (d2 > 0)
     # A feature whose word occurs twice in its node pairs with nothing (RTAB-Map keeps the words
     # found once on each side).
-    keep &= _found_once(from_sig.word_ids)[i_from] & _found_once(to_sig.word_ids)[i_to]
+    keep &= _found_once(from_sig)[i_from] & _found_once(to_sig)[i_to]
     i_from, i_to, d1 = i_from[keep], i_to[keep], d1[keep]
     # A from feature several to features chose pairs with none of them (RTAB-Map's rule: a word
     # found twice in the other node), unless the nearest shares its word (distance 0): a shared
     # word always keeps its pair.
     order = np.lexsort((d1, i_from))
     i_from, i_to, d1 = i_from[order], i_to[order], d1[order]
-    first = np.ones(len(i_from), bool)
-    first[1:] = i_from[1:] != i_from[:-1]
-    last = np.ones(len(i_from), bool)
-    last[:-1] = i_from[1:] != i_from[:-1]
-    runner_up = np.full(len(i_from), np.inf)
-    runner_up[:-1] = np.where(last[:-1], np.inf, d1[1:])
-    keep = first & (np.isinf(runner_up) | ((d1 == 0) & (runner_up > 0)))
+    _, best, choosers = np.unique(i_from, return_index=True, return_counts=True)
+    runner_up = d1[np.minimum(best + 1, len(d1) - 1)]
+    keep = best[(choosers == 1) | ((d1[best] == 0) & (runner_up > 0))]
     return i_from[keep], i_to[keep]
 
 
-def _found_once(word_ids: np.ndarray) -> np.ndarray:
-    """Per feature, whether its word occurs once in the node."""
-    _, inverse, counts = np.unique(np.asarray(word_ids), return_inverse=True, return_counts=True)
-    return counts[inverse] == 1
+def _found_once(sig: Signature) -> np.ndarray:
+    """Per feature of ``sig``, whether its word occurs once in the node."""
+    once = np.zeros(len(sig.word_ids), bool)
+    once[sig.words_found_once()[1]] = True
+    return once
 
 
 def epipolar_check(from_sig: Signature, to_sig: Signature, min_pairs: int, max_distance_px: float,
