@@ -497,14 +497,15 @@ def voxel_filter(points: np.ndarray, colors: np.ndarray | None, voxel: float):
     flat_keys = np.ravel_multi_index(keys.T, tuple(keys.max(axis=0) + 1))
     _, inverse, counts = np.unique(flat_keys, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
-    sums = np.zeros((len(counts), dim))
-    np.add.at(sums, inverse, pts)
-    out_pts = (sums / counts[:, None]).astype(np.float32)
+    # Per-voxel sums by bincount, one column at a time (np.add.at took ~10x as long).
+    def voxel_means(values: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.bincount(inverse, weights=column, minlength=len(counts))
+                                for column in values.T]) / counts[:, None]
+
+    out_pts = voxel_means(pts).astype(np.float32)
     if colors is None:
         return out_pts, None
-    csum = np.zeros((len(counts), 3))
-    np.add.at(csum, inverse, np.asarray(colors, dtype=np.float64).reshape(-1, 3))
-    return out_pts, np.rint(csum / counts[:, None]).astype(np.uint8)
+    return out_pts, np.rint(voxel_means(np.asarray(colors, dtype=np.float64).reshape(-1, 3))).astype(np.uint8)
 
 
 def assemble_cloud(poses: dict[int, np.ndarray], depths: dict[int, np.ndarray], rgbs: dict[int, np.ndarray],

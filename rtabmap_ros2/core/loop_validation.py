@@ -32,7 +32,7 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis
-from rtabmap_ros2.core.graph import Link, LinkType, agree, agree_many, default_information, loop_type, residuals
+from rtabmap_ros2.core.graph import Link, LinkType, agree, agree_many, default_information, inverse_transforms, loop_type, residuals
 from rtabmap_ros2.core.grid import scan_conflict
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.params import Params
@@ -331,18 +331,20 @@ def max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: boo
     links = [link for link in links if link.from_id in poses and link.to_id in poses]
     if not links:
         return 0.0
-    residual = residuals(poses, links)
+    T_inverse = inverse_transforms(links)
+    residual = residuals(poses, links, T_inverse)
     t_err, r_err = error_sizes(residual, planar)
     if before:
-        had = np.array([link.key() not in new and link.from_id in before and link.to_id in before for link in links])
+        had = np.fromiter((link.from_id in before and link.to_id in before and link.key() not in new
+                           for link in links), bool, len(links))
         if had.any():
-            was = residuals(before, [link for link, h in zip(links, had) if h])
+            was = residuals(before, [link for link, h in zip(links, had) if h], T_inverse[had])
             # How far each error moved: inv(was) @ now (its translation is R_was' (t_now - t_was)).
             t_was, r_was = error_sizes(was, planar)
             t_moved, r_moved = error_sizes(transforms.inverse_many(was) @ residual[had], planar)
             t_err[had] = np.where(t_err[had] > t_was, np.minimum(t_err[had], t_moved), 0.0)
             r_err[had] = np.where(r_err[had] > r_was, np.minimum(r_err[had], r_moved), 0.0)
-    info = np.array([link.information for link in links], dtype=float).diagonal(axis1=1, axis2=2)
+    info = np.array([link.information.diagonal() for link in links], dtype=float)
     if planar:
         t_info, r_info = np.minimum(info[:, 0], info[:, 1]), info[:, 5]
     else:
