@@ -57,9 +57,16 @@ NEAREST = 2
 _LEAF = -1
 _BITS = 64  # the words are held as little-endian uint64 lanes: dimension d is lane d // 64, bit d % 64
 _INITIAL_POINTS = 1024
+# Room a build reserves for the words inserted after it, x its words: the REBALANCING growth that
+# starts the next rebuild, and as much again while that rebuild runs in the background (it is swapped
+# in n / SWAP_WORDS_PER_SEARCH searches later at the earliest). The arrays are np.zeros (calloc): the
+# room costs address space, its pages become resident only when written. Growing an array instead
+# copies it in the frame that overflows it: at 1.75M words the node array is ~220 MB, and its copy
+# was the slowest frame of the 10,000- and 25,000-image detect runs (0.40 and 0.67 s of quantisation).
+INSERTION_ROOM = 2.0
 # Nodes: int32 indices (points and nodes < 2**31) and a float32 split value, 16 bytes a node in one
-# row (_Forest.nodes); a forest holds up to 16 nodes a word (4 trees built over n words, 2 nodes per
-# tree per insertion).
+# row (_Forest.nodes); a forest reserves 24 nodes a word it was built over (4 trees of 2 n - 1 nodes,
+# and 2 nodes per tree for each of the INSERTION_ROOM x n insertions), resident only once used.
 _NODE = np.int32
 # Background rebuild (issue 50). Its swap comes at least one search per SWAP_WORDS_PER_SEARCH words
 # of the snapshot after it started, so the swap search does not wait for the thread: a build costs
@@ -393,7 +400,7 @@ class _Forest:
     def __init__(self, lanes: int, n_bits: int, words: np.ndarray, ids: np.ndarray) -> None:
         self.lanes, self.n_bits = lanes, n_bits
         n = ids.size
-        size = max(_INITIAL_POINTS, 2 * n)
+        size = max(_INITIAL_POINTS, int((1.0 + INSERTION_ROOM) * n))
         self.words = _grown(words, size, n)
         self.ids = _grown(ids, size, n)
         self.removed = np.zeros(size, np.bool_)
@@ -412,12 +419,12 @@ class _Forest:
 
     def build(self, draws: list[tuple[np.ndarray, np.ndarray]]) -> None:
         """divideTree for each tree over all points, with one (permutation, choices) draw per tree.
-        Room is reserved for the insertions until the next rebuild (2 nodes per tree per word,
-        REBALANCING x the words): no node array grows in a frame."""
+        Room is reserved for the insertions until the next rebuild is swapped in (2 nodes per tree
+        per word, INSERTION_ROOM x the words): no node array grows in a frame."""
         n = self.n_points
         self.n_nodes = 0
         self._set_nodes(np.zeros((0, 4), _NODE))
-        self.reserve_nodes(TREES * (2 * n - 1) + 2 * TREES * (int((REBALANCING - 1.0) * n) + 1) + 16)
+        self.reserve_nodes(TREES * (2 * n - 1) + 2 * TREES * (int(INSERTION_ROOM * n) + 1) + 16)
         roots = []
         for ind, choices in draws:
             root, self.n_nodes = _divide_tree(self.words, self.n_bits, ind.copy(), choices, self.feat, self.val,
