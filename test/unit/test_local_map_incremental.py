@@ -288,6 +288,32 @@ def test_loop_closure_frames_continue_the_last_solution_and_equal_the_batch_solv
     assert not incremental and len(batch) >= 20
 
 
+def test_a_node_merged_before_any_solution_keeps_the_incremental_solution(shared_data, tmp_path, monkeypatch):
+    """A frame's own node merged by rehearsal leaves the local map before any solution held it: the
+    iSAM2 solution goes on (each merge made the next two loop closure frames batch solves); a node the
+    solution holds leaving still makes the next loop closure frame a batch solve."""
+    poses, links = _intel(shared_data)
+    batch, incremental = _count_solves(monkeypatch)
+    rtabmap = Rtabmap(Params(), tmp_path / "intel.db")
+    held_left = []
+    try:
+        def on_frame(node: int) -> None:
+            if incremental and node % 10 == 0:
+                rtabmap.local.forget([10 ** 6 + node])  # never in a solution
+            if len(incremental) >= 10 and not held_left and rtabmap.local._solver.holds([node - 50]):
+                held_left.append(len(batch))
+                rtabmap.local.forget([node - 50])
+
+        _feed(rtabmap, poses, links, sorted(poses)[:300], on_frame)
+    finally:
+        rtabmap.close()
+    assert len(incremental) >= 20
+    assert held_left == [1]  # only the first loop closure was solved in batch before
+    # After the held node left: the next loop closure frame in batch (nodes leaving: no restart, as
+    # for transfers), the one after it in batch and iSAM2 started again from it.
+    assert len(batch) == 3
+
+
 def _square_laps(laps: int = 2, side: int = 10) -> tuple[dict, list]:
     """A robot driving ``laps`` times round a 5 m square (0.5 m steps, exact odometry links of 1 cm /
     0.6 deg), each pose of the later laps closing a loop to the same corner of the first lap (3 cm)."""
