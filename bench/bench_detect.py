@@ -23,7 +23,7 @@ as a user runs it) over ``../shared/tools/make_sequence.py`` images of a seed no
 (``memory.time_threshold_ms=700``). Reported per run: max, p95 and median process time, frames over
 T_time, WM and vocabulary size (last and largest), transfers, peak RSS of the process (wait4), the
 machine's load, and the steps of the slowest frames (from the database's statistics table)
-(-> ``long_runs`` in ``results/detect.json``, the T_time sweep's runs kept). Target: max process
+(-> ``long_runs`` in ``results/detect.json``, the T_time sweep's runs and the long runs of other sizes kept). Target: max process
 time <= 0.7 s. ``--long-report-only`` summarises the runs' outputs as they are (one still running
 or stopped: the frames done so far), running nothing.
 
@@ -516,7 +516,10 @@ def long_runs(args: argparse.Namespace) -> int:
             print(f"  frame {spike['frame']}: {spike['ptime_ms']:.0f} ms, WM {spike['wm_size']}, "
                   f"transferred {spike['transferred']}, steps {spike['steps_ms']}", flush=True)
         report = json.loads(path.read_text()) if path.exists() else {}
-        report["long_runs"] = {"cpu_count": os.cpu_count(), "runs": runs}
+        # Runs of other sizes stay (``--long 10000`` and ``--long 25000`` may run apart).
+        done = {r["images"] for r in runs}
+        kept = [r for r in report.get("long_runs", {}).get("runs", []) if r["images"] not in done]
+        report["long_runs"] = {"cpu_count": os.cpu_count(), "runs": sorted(kept + runs, key=lambda r: r["images"])}
         path.write_text(json.dumps(report, indent=1))
     if runs:
         print(f"-> {path}")
