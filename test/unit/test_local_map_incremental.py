@@ -260,23 +260,24 @@ def test_loop_closure_frames_continue_the_last_solution_and_equal_the_batch_solv
                                                                                   monkeypatch):
     """graph.incremental (issue 50): after the first loop closure, a loop closure frame adds its nodes
     and links to the last solution (iSAM2) instead of solving the whole local map again, and its
-    local map is the batch solution of the same graph."""
+    local map is the batch solution of the same graph; so is a leaf update grown on it."""
     poses, links = _intel(shared_data)
     batch, incremental = _count_solves(monkeypatch)
-    checked = []
+    checked, leaves_checked = [], []
     rtabmap = Rtabmap(Params(), tmp_path / "intel.db")
     try:
         def on_frame(node: int) -> None:
-            if rtabmap.local.new_loops and node % 3 == 0:
+            leaf = incremental and not rtabmap.local.new_loops and len(rtabmap.memory.graph.links_of(node)) == 1
+            if leaf or rtabmap.local.new_loops and node % 3 == 0:
                 dt, dr = _difference(rtabmap.local.poses, _batch(rtabmap, node))
-                checked.append(node)
+                (leaves_checked if leaf else checked).append(node)
                 assert dt < INCREMENTAL_TOLERANCE_M and dr < INCREMENTAL_TOLERANCE_RAD, (node, dt, dr)
 
         _feed(rtabmap, poses, links, sorted(poses), on_frame)
     finally:
         rtabmap.close()
     assert len(batch) == 1  # the first loop closure: nothing to continue from yet
-    assert len(incremental) >= 20 and len(checked) >= 5
+    assert len(incremental) >= 20 and len(checked) >= 5 and len(leaves_checked) >= 5
     # Without it, every loop closure frame is a batch solve, to the same local map.
     batch.clear()
     incremental.clear()
