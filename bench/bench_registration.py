@@ -150,6 +150,8 @@ def loop_pair(folder: Path, params: Params, undistort: bool = False) -> dict:
     calibration first), their word descriptors (guided matching), the ground truth of new -> old and
     the frames."""
     camera = _pair_camera(folder)
+    if undistort:   # as the SLAM path does with a CameraInfo's D and P = K (io/bag.py raw_image_distortion)
+        camera = replace(camera, distortion=tuple(FR1_DISTORTION))
     extractor = FeatureExtractor(params.features)
     vocabulary = Vocabulary(params.vocabulary, extractor.binary, background_rebuild=False)
     frames, signatures = {}, {}
@@ -157,15 +159,8 @@ def loop_pair(folder: Path, params: Params, undistort: bool = False) -> dict:
         rgb, depth, pose = frames[which] = _read_frame(folder, which)
         features = extractor.extract(rgb)
         word_ids, _ = vocabulary.quantize(features.descriptors)
-        keypoints = features.keypoints
-        points = words_3d(keypoints, depth, camera)
-        if undistort:
-            K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1.0]])
-            keypoints = cv2.undistortPoints(keypoints.reshape(-1, 1, 2).astype(np.float64), K, FR1_DISTORTION,
-                                            P=K).reshape(-1, 2).astype(np.float32)
-            z = points[:, 2].astype(np.float64)
-            points = camera.back_project(keypoints.astype(np.float64), z).astype(np.float32)
-        signatures[which] = Signature(node, 1, 0, word_ids, keypoints, points, camera=camera)
+        points = words_3d(features.keypoints, depth, camera)
+        signatures[which] = Signature(node, 1, 0, word_ids, camera.undistort(features.keypoints), points, camera=camera)
     new, old = signatures["curr"], signatures["prev"]
     return {"new": new, "old": old, "camera": camera, "frames": frames,
             "descriptors": (vocabulary.descriptors_of(new.word_ids), vocabulary.descriptors_of(old.word_ids)),

@@ -146,7 +146,9 @@ def words_3d(keypoints: np.ndarray, depth_m: np.ndarray, camera: CameraModel) ->
     Args:
         keypoints: (N,2) pixel coordinates (x = column, y = row).
         depth_m: HxW depth (m) registered to the image of the keypoints; NaN or 0 = invalid.
-        camera: pinhole model of the image; ``T_base_camera`` maps optical -> base frame.
+        camera: model of the image; ``T_base_camera`` maps optical -> base frame. With a lens
+            distortion (images not rectified) the depth is read at the keypoint's pixel and the
+            point placed along its undistorted ray (:meth:`CameraModel.undistort`).
 
     Returns:
         (N,3) float32 points (m) in the base frame; NaN rows where the depth at the keypoint's
@@ -166,7 +168,7 @@ def words_3d(keypoints: np.ndarray, depth_m: np.ndarray, camera: CameraModel) ->
         valid = np.isfinite(z) & (z > 0)
     if not valid.any():
         return out
-    p_cam = camera.back_project(kp[valid], z[valid])
+    p_cam = camera.back_project(camera.undistort(kp[valid]).astype(np.float64), z[valid])
     T = camera.T_base_camera
     out[valid] = (p_cam @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
     return out

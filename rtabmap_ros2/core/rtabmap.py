@@ -269,7 +269,7 @@ class Rtabmap:
             points3d = words_3d(features.keypoints, frame.depth_m, frame.camera)
         watch.lap("quantization")
         sig = Signature(id=node_id, map_id=memory.map_id, stamp_ns=frame.stamp_ns, word_ids=word_ids,
-                        keypoints=features.keypoints, points3d=points3d, T_odom_base=frame.T_odom_base,
+                        keypoints=_pinhole_keypoints(features, frame), points3d=points3d, T_odom_base=frame.T_odom_base,
                         scan=frame.scan, camera=frame.camera, bad=bad)
         blobs = SensorBlobs.deferred(frame.rgb, frame.depth_m, frame.odom_covariance)
         watch.lap("database")
@@ -348,7 +348,7 @@ class Rtabmap:
         if frame.depth_m is not None and frame.camera is not None and len(word_ids):
             points3d = words_3d(features.keypoints, frame.depth_m, frame.camera)
         sig = Signature(id=0, map_id=memory.map_id, stamp_ns=frame.stamp_ns, word_ids=word_ids[known],
-                        keypoints=features.keypoints[known], points3d=points3d[known],
+                        keypoints=_pinhole_keypoints(features, frame)[known], points3d=points3d[known],
                         T_odom_base=frame.T_odom_base, scan=frame.scan, camera=frame.camera)
         watch.lap("quantization")
         hypothesis = self._hypothesis(sig, stats)
@@ -418,6 +418,12 @@ def frame_features(extractor: FeatureExtractor, frame: SensorFrame) -> Features:
     if frame.rgb is None:
         return extractor.empty()
     return extractor.extract(frame.rgb)
+
+
+def _pinhole_keypoints(features: Features, frame: SensorFrame) -> np.ndarray:
+    """The keypoints as the camera model's pinhole sees them: undistorted when the images are not
+    rectified (registration projects words with the pinhole model), as they are otherwise."""
+    return features.keypoints if frame.camera is None else frame.camera.undistort(features.keypoints)
 
 
 def _delete_database(path: Path) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Iterator, Optional, Protocol, runtime_checkable
 
+import cv2
 import numpy as np
 
 from rtabmap_ros2.core import transforms
@@ -23,7 +24,9 @@ from rtabmap_ros2.errors import SensorDataError
 
 @dataclass(frozen=True)
 class CameraModel:
-    """Pinhole camera: intrinsics (px) and the base -> optical frame transform (4x4)."""
+    """Pinhole camera: intrinsics (px), the base -> optical frame transform (4x4) and, for images that
+    are not rectified, their lens distortion (OpenCV's k1 k2 p1 p2 [k3 ...], a CameraInfo's plumb_bob
+    or rational_polynomial D; empty: the images are rectified)."""
 
     fx: float
     fy: float
@@ -32,6 +35,7 @@ class CameraModel:
     width: int
     height: int
     T_base_camera: np.ndarray = field(default_factory=transforms.identity)
+    distortion: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if not (self.fx > 0 and self.fy > 0 and np.isfinite([self.fx, self.fy, self.cx, self.cy]).all()):
@@ -44,6 +48,16 @@ class CameraModel:
         if not transforms.is_rigid(self.T_base_camera):
             raise SensorDataError("camera model's T_base_camera is not a rigid 4x4 transform", "invalid_mount",
                                   "camera_info")
+
+    def undistort(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels (N,2, float32) of this pinhole model (no distortion) where pixels ``uv`` (N,2) of the
+        image as taken are: ``uv`` itself when the images are rectified."""
+        uv = np.asarray(uv, dtype=np.float32).reshape(-1, 2)
+        if not self.distortion or len(uv) == 0:
+            return uv
+        K = np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+        return cv2.undistortPoints(uv.reshape(-1, 1, 2).astype(np.float64), K, np.asarray(self.distortion),
+                                   P=K).reshape(-1, 2).astype(np.float32)
 
     def back_project(self, uv: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
         """Points in the optical frame (N,3, m) of pixels ``uv`` (N,2, px) at depths (N,, m)."""
@@ -63,7 +77,7 @@ class CameraModel:
         """The same camera at another resolution (e.g. depth registered at half size)."""
         sx, sy = width / self.width, height / self.height
         return CameraModel(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
-                           self.T_base_camera)
+                           self.T_base_camera, self.distortion)
 
 
 @dataclass(frozen=True)

@@ -494,7 +494,9 @@ def camera_info_from_msg(msg, T_base_camera: np.ndarray = DEFAULT_T_BASE_CAMERA)
 
     Intrinsics from ``K``; when the projection ``P`` is set and differs from ``K`` (a calibrated,
     distorted camera: ``P`` is the rectified image's), from ``P``: the images a SLAM node uses are the
-    rectified ones (``image_rect``), whose intrinsics are ``P``'s.
+    rectified ones (``image_rect``), whose intrinsics are ``P``'s. When ``P`` = ``K`` and ``D`` is not
+    zero (plumb_bob or rational_polynomial), the images are the raw ones: the model keeps ``D`` and
+    the keypoints are undistorted with it (:meth:`CameraModel.undistort`).
     """
     K = np.asarray(_field(msg, "k"), dtype=np.float64)
     P = np.asarray(_field(msg, "p"), dtype=np.float64)
@@ -503,7 +505,27 @@ def camera_info_from_msg(msg, T_base_camera: np.ndarray = DEFAULT_T_BASE_CAMERA)
     if (calibrated and P.size == 12 and P[0] > 0 and P[5] > 0
             and not np.allclose((P[0], P[5], P[2], P[6]), (fx, fy, cx, cy))):
         fx, fy, cx, cy = float(P[0]), float(P[5]), float(P[2]), float(P[6])
-    return CameraModel(fx, fy, cx, cy, int(msg.width), int(msg.height), np.array(T_base_camera, dtype=np.float64))
+    return CameraModel(fx, fy, cx, cy, int(msg.width), int(msg.height), np.array(T_base_camera, dtype=np.float64),
+                       raw_image_distortion(msg))
+
+
+# CameraInfo distortion models whose D OpenCV's undistortPoints takes as it is.
+_OPENCV_DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
+
+
+def raw_image_distortion(msg) -> tuple[float, ...]:
+    """A CameraInfo's ``D`` when its images are not rectified (``D`` not zero, ``P`` = ``K``) and
+    OpenCV models it; () otherwise (rectified images, or a model such as equidistant, said by
+    :func:`_warn_if_not_rectified`)."""
+    d = np.asarray(_field(msg, "d"), dtype=np.float64)
+    K = np.asarray(_field(msg, "k"), dtype=np.float64)
+    P = np.asarray(_field(msg, "p"), dtype=np.float64)
+    rectified_p = P.size == 12 and P[0] > 0 and not np.allclose((P[0], P[5], P[2], P[6]), (K[0], K[4], K[2], K[5]))
+    model = str(getattr(msg, "distortion_model", "") or "plumb_bob")
+    if rectified_p or not d.size or not np.any(d != 0) or model not in _OPENCV_DISTORTION_MODELS \
+            or d.size not in (4, 5, 8, 12, 14) or not np.isfinite(d).all():
+        return ()
+    return tuple(float(v) for v in d)
 
 
 def register_to_rgb(frame: SensorFrame) -> SensorFrame:
@@ -901,17 +923,25 @@ class BagDataset:
 
 
 def _warn_if_not_rectified(path: Path, info: "_Raw") -> None:
-    """Say once per bag that a camera's images are used as they are, distortion and all, when its
-    CameraInfo has distortion coefficients and no rectified projection (P = K): the images are the
-    raw ones (RTAB-Map assumes rectified images, Rtabmap/ImagesAlreadyRectified)."""
+    """Say once per bag how a camera's raw images are used when its CameraInfo has distortion
+    coefficients and no rectified projection (P = K): keypoints undistorted with D (RTAB-Map assumes
+    rectified images, Rtabmap/ImagesAlreadyRectified), or as they are when OpenCV cannot model D."""
     d = np.asarray(_field(info.msg, "d"), dtype=np.float64)
     K = np.asarray(_field(info.msg, "k"), dtype=np.float64)
     P = np.asarray(_field(info.msg, "p"), dtype=np.float64)
     rectified_p = P.size == 12 and P[0] > 0 and not np.allclose((P[0], P[5], P[2], P[6]), (K[0], K[4], K[2], K[5]))
-    if d.size and np.any(d != 0) and not rectified_p:
-        logger.warning("bag %s: %s has distortion coefficients D = [%s] and P = K: the images are not rectified "
-                       "and are used as they are (undistort them first, e.g. image_proc's image_rect, or convert "
-                       "a TUM folder with 'tum2bag --rectify')", path, info.topic, " ".join(f"{v:g}" for v in d))
+    if not (d.size and np.any(d != 0) and not rectified_p):
+        return
+    coefficients = " ".join(f"{v:g}" for v in d)
+    if raw_image_distortion(info.msg):
+        logger.warning("bag %s: %s has distortion coefficients D = [%s] and P = K: the images are not rectified; "
+                       "visual words are undistorted with D (the depth grid and clouds use the images as they are: "
+                       "rectify them first, e.g. image_proc's image_rect or 'tum2bag --rectify', for those too)",
+                       path, info.topic, coefficients)
+    else:
+        logger.warning("bag %s: %s has distortion coefficients D = [%s] (model %r) and P = K: the images are not "
+                       "rectified and are used as they are (undistort them first, e.g. image_proc's image_rect)",
+                       path, info.topic, coefficients, getattr(info.msg, "distortion_model", ""))
 
 
 # --------------------------------------------------------------------------------------------

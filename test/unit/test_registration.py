@@ -55,6 +55,26 @@ def test_words_3d_back_projects_and_marks_invalid():
     assert np.allclose(pts[3], [2.1, -1.0, 0.5], atol=1e-5)  # 1 m right in optical x = -y in base
 
 
+
+def test_words_of_raw_images_lie_on_their_undistorted_rays():
+    """Images that are not rectified (a CameraInfo's D, P = K): a point seen at its distorted pixel is
+    placed along its true ray at the depth read at that pixel, and its keypoint becomes the pinhole's."""
+    fr1 = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
+    raw = CameraModel(517.3, 516.5, 318.6, 255.3, 640, 480, distortion=fr1)
+    pinhole = CameraModel(517.3, 516.5, 318.6, 255.3, 640, 480)
+    truth = np.array([[0.7, -0.5, 1.5], [-0.8, 0.5, 2.0], [0.05, 0.02, 1.0]])   # optical frame, m
+    K = np.array([[517.3, 0, 318.6], [0, 516.5, 255.3], [0, 0, 1.0]])
+    seen, _ = cv2.projectPoints(truth, np.zeros(3), np.zeros(3), K, np.array(fr1))
+    seen = seen.reshape(-1, 2)
+    assert np.abs(seen - pinhole.project(truth)).max() > 5.0          # the lens moves the corners by pixels
+    depth = np.zeros((480, 640), np.float32)
+    for (u, v), z in zip(np.rint(seen).astype(int), truth[:, 2]):
+        depth[v, u] = z
+    np.testing.assert_allclose(words_3d(seen, depth, raw), truth, atol=1e-3)
+    np.testing.assert_allclose(raw.undistort(seen), pinhole.project(truth), atol=0.01)
+    np.testing.assert_array_equal(pinhole.undistort(seen), seen.astype(np.float32))   # rectified: as they are
+    assert raw.scaled(320, 240).distortion == fr1
+
 @pytest.mark.parametrize("case", ["case_1", "case_2"])
 def test_3d_ransac_recovers_tum_relative_pose(shared_data, case):
     folder = shared_data / "rgbd" / "tum_fr1_xyz_pairs" / case

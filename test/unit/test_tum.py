@@ -81,6 +81,7 @@ def test_bag_round_trip_on_real_frames(tum_rpy_folder, tmp_path, caplog):
     np.testing.assert_allclose(frames[0].depth_m[valid], raw[valid] / 5000.0, atol=0.0005 + 1e-6)
     assert np.isnan(frames[0].depth_m[~valid]).all()
     assert frames[0].camera.fx == pytest.approx(517.306408) and frames[0].camera.height == 480
+    assert frames[0].camera.distortion == pytest.approx(CAMERAS["fr1"].distortion)   # keypoints undistorted with D
     np.testing.assert_allclose(frames[0].camera.T_base_camera, DEFAULT_T_BASE_CAMERA)
     truth = read_tum(result.ground_truth_path)
     assert list(truth.stamps_ns) == [f.stamp_ns for f in frames]
@@ -99,6 +100,7 @@ def test_bag_round_trip_on_real_frames(tum_rpy_folder, tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         undistorted = next(iter(BagDataset(rectified.bag_path, sync=EVERY_FRAME)))
     assert not any("not rectified" in r.message for r in caplog.records)   # D = 0 written
+    assert undistorted.camera.distortion == ()
     assert np.isfinite(undistorted.depth_m).mean() > 0.5 and not np.array_equal(undistorted.rgb, frames[0].rgb)
 
 
