@@ -96,7 +96,7 @@ ABLATION = {
     **CONFIGS,
     # What the defaults add to RTAB-Map's detection, each taken out alone.
     "no roll normalisation": ("--set", "features.roll_normalization=false"),
-    "no describable corners only": ("--set", "features.describable_corners_only=false"),
+    "GFTT/MinDistance 7 (RTAB-Map's)": ("--set", "features.gftt_min_distance_px=7"),
     # Issue 32's additions (likelihood trim, evidence check, hypothesis refinement, view alignment,
     # repeated evidence discount, loop closure hop) lost on real images and were removed (issue 48):
     # their last rows are in docs/benchmarks.md. The values and the word search chosen then:

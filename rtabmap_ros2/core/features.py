@@ -26,11 +26,11 @@ from rtabmap_ros2.errors import SensorDataError
 
 logger = logging.getLogger(__name__)
 
-# GFTT settings of RTAB-Map (GFTT/QualityLevel, GFTT/MinDistance, GFTT/BlockSize). A quality level
-# of 0.001 leaves ~1,900 corners on a 640x480 indoor frame, so the T_maxFeatures cap (GFTT returns
-# corners strongest first) is what selects the features, as Alg. 2 line 2 asks.
+# GFTT settings of RTAB-Map (GFTT/QualityLevel, GFTT/BlockSize; GFTT/MinDistance is
+# features.gftt_min_distance_px). A quality level of 0.001 leaves ~1,900 corners on a 640x480 indoor
+# frame, so the T_maxFeatures cap (GFTT returns corners strongest first) is what selects the features,
+# as Alg. 2 line 2 asks.
 GFTT_QUALITY_LEVEL = 0.001
-GFTT_MIN_DISTANCE_PX = 7.0
 GFTT_BLOCK_SIZE_PX = 3
 # ORB settings: RTAB-Map's ORB/* defaults (Parameters.h: ORB/ScaleFactor 2, ORB/NLevels 3,
 # ORB/EdgeThreshold 19, ORB/PatchSize 31, ORB/FastThreshold 20), not OpenCV's (1.2, 8, 31): on a
@@ -168,7 +168,7 @@ class FeatureExtractor:
             # maxCorners = 0 means "no limit" for OpenCV, as max_features = 0 does here.
             self._gftt = cv2.GFTTDetector_create(
                 maxCorners=params.max_features, qualityLevel=GFTT_QUALITY_LEVEL,
-                minDistance=GFTT_MIN_DISTANCE_PX, blockSize=GFTT_BLOCK_SIZE_PX)
+                minDistance=params.gftt_min_distance_px, blockSize=GFTT_BLOCK_SIZE_PX)
         if params.detector == "sift":
             self._sift = cv2.SIFT_create(nfeatures=params.max_features)
 
@@ -221,13 +221,9 @@ class FeatureExtractor:
         return self._select(keypoints, descriptors)
 
     def _detection_mask(self, shape: tuple[int, int]) -> np.ndarray:
-        """uint8 mask (HxW), 255 where keypoints may be detected: the ROI, and with gftt_orb not in the
-        band along the border where ORB cannot describe a corner (``ORB_EDGE_THRESHOLD_PX``)."""
+        """uint8 mask (HxW), 255 where keypoints may be detected: the region of interest."""
         height, width = shape
         x0, x1, y0, y1 = roi_bounds(width, height, self.params.roi_ratios)
-        if self.params.detector == "gftt_orb" and self.params.describable_corners_only:
-            band = ORB_EDGE_THRESHOLD_PX
-            x0, x1, y0, y1 = max(x0, band), min(x1, width - band), max(y0, band), min(y1, height - band)
         mask = np.zeros((height, width), np.uint8)
         if x1 > x0 and y1 > y0:
             mask[y0:y1, x0:x1] = 255

@@ -58,13 +58,12 @@ class FeatureParams:
     response_threshold: float = _p(
         0.0, "T_response: minimum detector response of a feature (detector-specific scale)"
     )
-    describable_corners_only: bool = _p(
-        True, "gftt_orb: look for corners only where ORB can describe them (not within ORB/EdgeThreshold, 19 px, "
-        "of the border), so that T_maxFeatures counts described features. Not in RTAB-Map, whose GFTT keeps the "
-        "strongest corners of the whole image and ORB then drops those in the band: a third of a 240x192 image's "
-        "area, 277 of 400 words on Lip6Outdoor. Issue 48's ablation (bench/bench_lcd.py): RTAB-Map's 84 images "
-        "0.909 / 0.500 with one false loop closure -> 0.955 / 1.000 (recall / at 100 % precision), Lip6Outdoor "
-        "recall 0.748 -> 0.775; worst set make_sequence 240x192, precision 0.912 -> 0.895")
+    gftt_min_distance_px: float = _p(
+        5.0, "gftt_orb: GFTT/MinDistance, the least distance between two corners (RTAB-Map's 7). On small "
+        "images 7 px leaves too few corners: a 240x192 Lip6Outdoor image holds a median 303 at 7 px, the "
+        "T_maxFeatures 400 at 5 px, as 640x480 images do either way. Issue 48's generalisation table "
+        "(bench/bench_lcd.py, docs/benchmarks.md): Lip6Outdoor recall at 100 % precision 0.811 -> 0.851 "
+        "(median of 3 seeds), RTAB-Map's 84 images 0 false loop closures in 3 seeds against 1 in 3", "px")
     roll_normalization: bool = _p(
         True, "Not in RTAB-Map: bring an image's edges upright before detection when the camera rolled "
         "5-30 degrees (a hand-held camera; core/features.py estimate_roll), so that upright descriptors still "
@@ -82,6 +81,7 @@ class FeatureParams:
         _check(self.detector in ("gftt_orb", "orb", "sift"), "features.detector", self.detector,
                "one of gftt_orb, orb, sift")
         _check(self.max_features >= 0, "features.max_features", self.max_features, ">= 0")
+        _check(self.gftt_min_distance_px >= 0.0, "features.gftt_min_distance_px", self.gftt_min_distance_px, ">= 0")
         _check(len(self.roi_ratios) == 4 and all(0.0 <= r < 1.0 for r in self.roi_ratios)
                and self.roi_ratios[0] + self.roi_ratios[1] < 1.0
                and self.roi_ratios[2] + self.roi_ratios[3] < 1.0,
@@ -703,6 +703,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "VhEp/RansacParam2": ("bayes.epipolar_confidence", float),
     "Kp/MaxFeatures": ("features.max_features", int),
     "Kp/DetectorStrategy": ("features.detector", lambda v: _DETECTOR_STRATEGIES.get(int(v), str(v))),
+    "GFTT/MinDistance": ("features.gftt_min_distance_px", float),
     "Kp/RoiRatios": ("features.roi_ratios", lambda v: tuple(float(x) for x in str(v).split())),
     "SURF/HessianThreshold": ("features.response_threshold", float),
     "Vis/MinInliers": ("registration.min_inliers", int),
@@ -767,6 +768,9 @@ REMOVED_PARAMETERS: dict[str, str] = {
                           ("align_radius", "the view alignment"),
                           ("discount_repeated_evidence", "the repeated evidence discount"),
                           ("loop_closure_hop", "the loop closure hop; RTAB-Map's neighbourhoods are kept"))},
+    "features.describable_corners_only": "not in RTAB-Map, removed in issue 48 (with GFTT/MinDistance 5 it gave false "
+                                         "loop closures on RTAB-Map's 84 images, docs/benchmarks.md); GFTT keeps the "
+                                         "strongest corners of the whole image as RTAB-Map's does: delete this key",
 }
 
 

@@ -124,12 +124,26 @@ def test_real_frame_cap_then_orb_border(real_image):
     """RTAB-Map's GFTT_ORB on a real 640x480 frame: the T_maxFeatures strongest corners of the whole
     image, then ORB drops those it cannot describe (its 19 px edge threshold, 23 px with the rotated
     patch): fewer than T_maxFeatures are kept, none in that band (the reference keeps a median 346 of
-    400 on the make_sequence images). With features.describable_corners_only (the default) GFTT looks
-    only where ORB describes: T_maxFeatures are kept, none in the band either."""
-    rtabmaps = FeatureExtractor(FeatureParams(describable_corners_only=False)).extract(real_image)
-    assert 300 < len(rtabmaps) < FeatureParams().max_features
-    features = FeatureExtractor(FeatureParams()).extract(real_image)
-    assert isinstance(features, Features)
-    assert len(features) == FeatureParams().max_features
-    x, y = features.keypoints[:, 0], features.keypoints[:, 1]
-    assert x.min() >= 19 and x.max() < 640 - 19 and y.min() >= 19 and y.max() < 480 - 19
+    400 on the make_sequence images)."""
+    for params in (FeatureParams(), FeatureParams(gftt_min_distance_px=7.0)):
+        features = FeatureExtractor(params).extract(real_image)
+        assert isinstance(features, Features)
+        assert 300 < len(features) < params.max_features
+        x, y = features.keypoints[:, 0], features.keypoints[:, 1]
+        assert x.min() >= 19 and x.max() < 640 - 19 and y.min() >= 19 and y.max() < 480 - 19
+
+
+def test_small_real_image_holds_max_features(shared_data):
+    """A real 240x192 image (Lip6Outdoor): at RTAB-Map's GFTT/MinDistance of 7 px the corners run out
+    before T_maxFeatures; at the default 5 px GFTT finds the 400 (issue 48), still at least that far
+    apart, and ORB describes those outside its border."""
+    gray = cv2.imread(str(shared_data / "lcd" / "lip6outdoor" / "images" / "000001.png"), cv2.IMREAD_GRAYSCALE)
+    assert gray.shape == (192, 240)
+    sparse = FeatureExtractor(FeatureParams(gftt_min_distance_px=7.0)).extract(gray)
+    features = FeatureExtractor(FeatureParams()).extract(gray)
+    assert len(sparse) < len(features) < FeatureParams().max_features
+    corners = cv2.GFTTDetector_create(maxCorners=400, qualityLevel=0.001, minDistance=5.0, blockSize=3).detect(gray)
+    assert len(corners) == FeatureParams().max_features
+    gaps = np.linalg.norm(features.keypoints[:, None] - features.keypoints[None], axis=2)
+    np.fill_diagonal(gaps, np.inf)
+    assert gaps.min() >= FeatureParams().gftt_min_distance_px - 1e-3

@@ -39,13 +39,14 @@ def test_one_detector_for_detect_map_and_the_node():
     slam, defaults = Params.from_yaml(default_config_path()), Params()
     assert slam.bayes == replace(defaults.bayes, likelihood="eq1")
     assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False)
-    assert slam.features == replace(defaults.features, roll_normalization=False, describable_corners_only=False)
+    assert slam.features == replace(defaults.features, roll_normalization=False, gftt_min_distance_px=7.0)
 
 
 @pytest.mark.parametrize("alias, value, section, field, expected", [
     ("Mem/STMSize", "15", "memory", "stm_size", 15),
     ("Mem/RehearsalSimilarity", "0.45", "memory", "rehearsal_similarity", 0.45),
     ("Kp/TfIdfLikelihoodUsed", "false", "bayes", "likelihood", "eq1"),
+    ("GFTT/MinDistance", "7", "features", "gftt_min_distance_px", 7.0),
     ("Kp/TfIdfLikelihoodUsed", "true", "bayes", "likelihood", "tf_idf"),
     ("Kp/NewWordsComparedTogether", "false", "vocabulary", "new_words_compared_together", False),
     ("Rtabmap/LoopRatio", "0.5", "bayes", "loop_ratio", 0.5),
