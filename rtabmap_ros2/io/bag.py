@@ -513,17 +513,23 @@ def camera_info_from_msg(msg, T_base_camera: np.ndarray = DEFAULT_T_BASE_CAMERA)
 _OPENCV_DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
 
 
-def raw_image_distortion(msg) -> tuple[float, ...]:
-    """A CameraInfo's ``D`` when its images are not rectified (``D`` not zero, ``P`` = ``K``) and
-    OpenCV models it; () otherwise (rectified images, or a model such as equidistant, said by
-    :func:`_warn_if_not_rectified`)."""
+def _raw_image_d(msg) -> np.ndarray:
+    """A CameraInfo's ``D`` when it says its images are raw (``D`` not zero and no rectified
+    projection: ``P`` = ``K``); empty otherwise."""
     d = np.asarray(_field(msg, "d"), dtype=np.float64)
     K = np.asarray(_field(msg, "k"), dtype=np.float64)
     P = np.asarray(_field(msg, "p"), dtype=np.float64)
     rectified_p = P.size == 12 and P[0] > 0 and not np.allclose((P[0], P[5], P[2], P[6]), (K[0], K[4], K[2], K[5]))
+    return d if d.size and np.any(d != 0) and not rectified_p else np.zeros(0)
+
+
+def raw_image_distortion(msg) -> tuple[float, ...]:
+    """A CameraInfo's ``D`` when its images are not rectified (``D`` not zero, ``P`` = ``K``) and
+    OpenCV models it; () otherwise (rectified images, or a model such as equidistant, said by
+    :func:`_warn_if_not_rectified`)."""
+    d = _raw_image_d(msg)
     model = str(getattr(msg, "distortion_model", "") or "plumb_bob")
-    if rectified_p or not d.size or not np.any(d != 0) or model not in _OPENCV_DISTORTION_MODELS \
-            or d.size not in (4, 5, 8, 12, 14) or not np.isfinite(d).all():
+    if model not in _OPENCV_DISTORTION_MODELS or d.size not in (4, 5, 8, 12, 14) or not np.isfinite(d).all():
         return ()
     return tuple(float(v) for v in d)
 
@@ -926,11 +932,8 @@ def _warn_if_not_rectified(path: Path, info: "_Raw") -> None:
     """Say once per bag how a camera's raw images are used when its CameraInfo has distortion
     coefficients and no rectified projection (P = K): keypoints undistorted with D (RTAB-Map assumes
     rectified images, Rtabmap/ImagesAlreadyRectified), or as they are when OpenCV cannot model D."""
-    d = np.asarray(_field(info.msg, "d"), dtype=np.float64)
-    K = np.asarray(_field(info.msg, "k"), dtype=np.float64)
-    P = np.asarray(_field(info.msg, "p"), dtype=np.float64)
-    rectified_p = P.size == 12 and P[0] > 0 and not np.allclose((P[0], P[5], P[2], P[6]), (K[0], K[4], K[2], K[5]))
-    if not (d.size and np.any(d != 0) and not rectified_p):
+    d = _raw_image_d(info.msg)
+    if not d.size:
         return
     coefficients = " ".join(f"{v:g}" for v in d)
     if raw_image_distortion(info.msg):

@@ -330,8 +330,22 @@ def test_rectified_projection_is_used_when_p_differs_from_k():
     msg.p = np.array([500.0, 0, 321.0, 0, 0, 501.0, 238.0, 0, 0, 0, 1, 0])
     model = conv.camera_model_from_msg(msg)
     assert (model.fx, model.fy, model.cx, model.cy) == (500.0, 501.0, 321.0, 238.0)
+    assert model.distortion == ()                      # rectified images: nothing to undistort
     msg.p = np.zeros(12)   # P unset: K
     assert conv.camera_model_from_msg(msg).fx == 525.0
+
+
+def test_raw_images_keep_their_distortion_for_the_visual_words():
+    """D with P = K: raw images, the model keeps D (the words are undistorted with it); a model OpenCV's
+    undistortPoints does not take (equidistant, a fisheye) or D = 0 gives a plain pinhole."""
+    msg = conv.camera_info_to_msg(CameraModel(525.0, 526.0, 319.5, 239.5, 640, 480), 0, "camera")
+    msg.d = np.array([0.1, -0.2, 0.001, 0.002, 0.05])
+    assert conv.camera_model_from_msg(msg).distortion == pytest.approx((0.1, -0.2, 0.001, 0.002, 0.05))
+    msg.distortion_model = "equidistant"
+    msg.d = np.array([0.1, -0.2, 0.001, 0.002])
+    assert conv.camera_model_from_msg(msg).distortion == ()
+    msg.distortion_model, msg.d = "plumb_bob", np.zeros(5)
+    assert conv.camera_model_from_msg(msg).distortion == ()
 
 
 def test_depth_at_half_resolution_is_registered_by_scaling():
