@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.grid import voxel_filter
+from rtabmap_ros2.core.nearest import NearestWithin
 from rtabmap_ros2.core.params import RegistrationParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 from rtabmap_ros2.core.signature import Signature
@@ -943,15 +944,15 @@ def _icp(source_xy: np.ndarray, target_xy: np.ndarray, T_init: np.ndarray, prior
     state = x0.copy()
     if len(src) < ICP_MIN_CORRESPONDENCES or len(tgt) < ICP_MIN_CORRESPONDENCES:
         return _IcpFit(transforms.from_xy_yaw(*state), 0.0, float("inf"), np.zeros((3, 3)))
-    tree = cKDTree(tgt)
-    normals = _line_normals(tgt, tree)
+    normals = _line_normals(tgt, cKDTree(tgt))
     has_normal = np.isfinite(normals).all(axis=1)
+    nearest = NearestWithin(tgt, max_correspondence_distance)
 
     def match(x: float, y: float, yaw: float):
         c, s = np.cos(yaw), np.sin(yaw)
         moved = src @ np.array([[c, s], [-s, c]]) + (x, y)
-        dist, idx = tree.query(moved, distance_upper_bound=max_correspondence_distance)
-        ok = np.isfinite(dist)
+        idx = nearest.query(moved)
+        ok = idx >= 0
         idx_ok = idx[ok]
         ok_normal = has_normal[idx_ok]
         return moved[ok][ok_normal], idx_ok[ok_normal], int(ok.sum())

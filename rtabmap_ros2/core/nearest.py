@@ -1,0 +1,79 @@
+"""The nearest point within a distance, in 2D: ICP's correspondence search (registration.py).
+
+ICP asks, at every iteration, for each scan point the nearest reference point closer than the
+correspondence distance. ``scipy.spatial.cKDTree.query(..., distance_upper_bound=d)`` answered it
+in ~0.4 ms a call for ~480 points against ~1,000 (about 10 calls per ICP, an ICP every frame:
+two thirds of a neighbour link's time). With the gate known, square cells of the gate's size hold
+every candidate of a point in the 3 x 3 cells around it, and a compiled loop over them gives the
+same answer (same squared distance, same strict bound) at a fraction of the cost.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rtabmap_ros2.core.compiled import jit
+
+# Cells a hair wider than the gate: a point nearer than the gate is then never two cells away from
+# the query, whatever the round-off of the cell coordinates.
+CELL_MARGIN = 1e-9
+
+
+@jit()
+def _nearest(points, order, keys, origin, cell, max_col, max_row, queries, bound_sq, out):
+    """For each query, the index of the point of smallest squared distance below ``bound_sq``
+    (-1: none); candidates from the cells ``(col, row)`` around it, sorted by ``col * (max_row + 1) + row``."""
+    for i in range(queries.shape[0]):
+        qx, qy = queries[i, 0], queries[i, 1]
+        fx = np.floor((qx - origin[0]) / cell)
+        fy = np.floor((qy - origin[1]) / cell)
+        out[i] = -1
+        if not (-1.0 <= fx <= max_col + 1.0 and -1.0 <= fy <= max_row + 1.0):  # also NaN
+            continue
+        cx, cy = int(fx), int(fy)
+        row_lo, row_hi = max(cy - 1, 0), min(cy + 1, max_row)
+        best = bound_sq
+        for col in range(max(cx - 1, 0), min(cx + 1, max_col) + 1):
+            first = np.searchsorted(keys, col * (max_row + 1) + row_lo, side="left")
+            last = np.searchsorted(keys, col * (max_row + 1) + row_hi, side="right")
+            for s in range(first, last):
+                j = order[s]
+                dx = points[j, 0] - qx
+                dy = points[j, 1] - qy
+                d = dx * dx + dy * dy
+                if d < best:
+                    best = d
+                    out[i] = j
+
+
+class NearestWithin:
+    """Reference points (N, 2) (m) binned in square cells of the gate's size."""
+
+    def __init__(self, points: np.ndarray, max_distance: float) -> None:
+        """``points``: (N, 2) reference points (m); ``max_distance``: the gate (m), > 0."""
+        self.points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        # cKDTree's bound on the squared distance (distance_upper_bound ** 2), strict.
+        self.bound_sq = float(max_distance) ** 2
+        self.cell = float(max_distance) * (1.0 + CELL_MARGIN)
+        self.origin = self.points.min(axis=0) if len(self.points) else np.zeros(2)
+        cells = np.floor((self.points - self.origin) / self.cell).astype(np.int64)
+        self.max_col = int(cells[:, 0].max()) if len(cells) else -2
+        self.max_row = int(cells[:, 1].max()) if len(cells) else -2
+        keys = cells[:, 0] * (self.max_row + 1) + cells[:, 1]
+        self.order = np.argsort(keys, kind="stable")
+        self.keys = keys[self.order]
+
+    def query(self, queries: np.ndarray) -> np.ndarray:
+        """(M,) int64 index of the point nearest each of (M, 2) ``queries`` (m) at a distance below
+        the gate, -1 where there is none (as ``cKDTree.query(queries, distance_upper_bound=gate)``,
+        whose ``N`` is -1 here)."""
+        queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 2)
+        out = np.empty(len(queries), np.int64)
+        _nearest(self.points, self.order, self.keys, self.origin, self.cell, self.max_col, self.max_row,
+                 queries, self.bound_sq, out)
+        return out
+
+
+def warm_up() -> None:
+    """Compile the search (or load it from numba's cache) here rather than in the first ICP."""
+    NearestWithin(np.zeros((2, 2)), 1.0).query(np.zeros((1, 2)))
