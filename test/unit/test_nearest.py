@@ -31,3 +31,16 @@ def test_no_reference_points_and_non_finite_queries():
     points = np.array([[0.0, 0.0], [1.0, 0.0]])
     queries = np.array([[np.nan, 0.0], [np.inf, 0.0], [0.9, 0.1], [0.5, 0.0]])
     assert NearestWithin(points, 0.3).query(queries).tolist() == [-1, -1, 1, -1]
+
+
+def test_k_nearest_as_cKDTree_within_the_gate():
+    rng = np.random.default_rng(5)
+    points = np.concatenate([rng.uniform(0.0, 6.0, (600, 2)), rng.uniform(20.0, 21.0, (3, 2))])
+    gate = 0.4
+    index, reach = NearestWithin(points, gate).k_nearest(3)
+    distances, expected = cKDTree(points).query(points, k=3)
+    within = distances[:, -1] <= gate
+    assert within.any() and (~within).any()
+    np.testing.assert_array_equal(index[within], expected[within])
+    np.testing.assert_array_equal(reach[within], distances[within, -1])
+    assert (reach[~within] > gate).all()   # beyond the gate: known to be beyond it
