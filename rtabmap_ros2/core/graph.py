@@ -183,8 +183,19 @@ class Graph:
         return out
 
     def component(self, start: int, allowed: Mapping[int, object] | set[int] | None = None) -> set[int]:
-        """Nodes connected to ``start`` (through ``allowed`` nodes only, if given)."""
-        return set(self.hops_from(start, max_hops=1 << 30, allowed=allowed))
+        """Nodes connected to ``start`` (through ``allowed`` nodes only, if given).
+
+        Breadth-first as ``hops_from`` without its hop counts and link types (a loop closure frame
+        asks this of ~2,000 nodes); the set is made from the nodes in the order found, as from
+        ``hops_from``'s dict, so that iterating it gives the same order."""
+        found = {start: None}
+        queue = deque([start])
+        while queue:
+            for other in self._adjacency.get(queue.popleft(), {}):
+                if other not in found and (allowed is None or other in allowed):
+                    found[other] = None
+                    queue.append(other)
+        return set(found)
 
 
 def connected_components(node_ids: Iterable[int], links: Iterable[Link]) -> list[set[int]]:
@@ -296,15 +307,42 @@ def residuals(poses: dict[int, np.ndarray], links: list[Link], T_inverse: np.nda
     """(N, 4, 4) residuals of ``links`` at ``poses``: identity where a link holds exactly.
 
     ``T_inverse``: the links' inverse transforms (N, 4, 4) when the caller has them already."""
-    # One stack of the poses indexed by the links' ends: the local map's check gathers ~2,000 links
-    # twice per loop closure frame, and gathering 4x4 arrays from Python lists was most of its time.
-    index = {node: i for i, node in enumerate(poses)}
-    P = np.array(list(poses.values()), dtype=float).reshape(-1, 4, 4)
-    from_index = np.fromiter((index[link.from_id] for link in links), np.int64, len(links))
-    to_index = np.fromiter((index[link.to_id] for link in links), np.int64, len(links))
-    if T_inverse is None:
-        T_inverse = inverse_transforms(links)
-    return T_inverse @ transforms.inverse_many(P)[from_index] @ P[to_index]
+    stack = PoseStack(poses)
+    rows, found = stack.rows(link_ends(links))
+    if not found.all():
+        raise KeyError(f"link end {int(link_ends(links)[~found][0])} has no pose")
+    return stack.residuals(rows, inverse_transforms(links) if T_inverse is None else T_inverse)
+
+
+def link_ends(links: list[Link]) -> np.ndarray:
+    """(N, 2) int64 ``from_id``, ``to_id`` of each link."""
+    ends = np.fromiter((node for link in links for node in (link.from_id, link.to_id)), np.int64, 2 * len(links))
+    return ends.reshape(-1, 2)
+
+
+class PoseStack:
+    """Poses as one (n, 4, 4) stack sorted by node id, looked up by arrays of ids: the local map's
+    checks gather ~2,000 links a loop closure frame, and gathering 4x4 arrays or dict entries per
+    link from Python was most of their time."""
+
+    def __init__(self, poses: dict[int, np.ndarray]) -> None:
+        ids = np.fromiter(poses, np.int64, len(poses))
+        order = np.argsort(ids, kind="stable")
+        self.ids = ids[order]
+        self.poses = np.array(list(poses.values()), dtype=float).reshape(-1, 4, 4)[order]
+        self._inverses: np.ndarray | None = None
+
+    def rows(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Row of each of ``nodes`` (any shape) in the stack, and whether it has one (else row 0)."""
+        rows = np.minimum(np.searchsorted(self.ids, nodes), max(len(self.ids) - 1, 0))
+        found = self.ids[rows] == nodes if len(self.ids) else np.zeros(np.shape(nodes), bool)
+        return np.where(found, rows, 0), found
+
+    def residuals(self, rows: np.ndarray, T_inverse: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) ``T_inverse @ inv(P[from]) @ P[to]`` of links whose ends are at ``rows`` (N, 2)."""
+        if self._inverses is None:
+            self._inverses = transforms.inverse_many(self.poses)
+        return T_inverse @ self._inverses[rows[:, 0]] @ self.poses[rows[:, 1]]
 
 
 def inverse_transforms(links: list[Link]) -> np.ndarray:

@@ -40,9 +40,9 @@ import logging
 import threading
 import time
 
-import numba
 import numpy as np
 
+from rtabmap_ros2.core.compiled import UNCACHED, jit as _jit
 from rtabmap_ros2.core.id_index import IdIndex
 
 # FLANN's KDTreeIndexParams default, RTAB-Map's KNN_CHECKS and Kp/FlannRebalancingFactor default.
@@ -83,24 +83,6 @@ REPLAY_WORDS_PER_SEARCH = 2000
 WAIT_WARNING_S = 0.05
 
 logger = logging.getLogger(__name__)
-
-# Functions compiled without numba's on-disk cache (no writable cache directory: see _jit).
-_UNCACHED: list[str] = []
-
-
-def _jit(**options):
-    """``numba.njit(nogil=True)`` with numba's on-disk cache (``cache=True``): compiled once per
-    install and source version, then loaded (``__pycache__`` beside this module if writable, else
-    ``NUMBA_CACHE_DIR``, else the user's cache directory). Where none is writable numba refuses
-    ``cache=True`` at import (RuntimeError): then the function is compiled in every process."""
-    def decorate(fn):
-        try:
-            return numba.njit(cache=True, nogil=True, **options)(fn)
-        except RuntimeError:
-            _UNCACHED.append(fn.__name__)
-            return numba.njit(nogil=True, **options)(fn)
-    return decorate
-
 
 @_jit(inline="always")
 def _popcount(x):
@@ -710,7 +692,7 @@ def warm_up() -> float:
         if stats[-1] is None:
             logger.warning("kd-tree word search: numba's JIT is disabled (NUMBA_DISABLE_JIT): it runs as Python, "
                            "100-500x slower")
-        elif _UNCACHED:
+        elif UNCACHED:
             logger.warning("kd-tree word search: numba compiled it in %.1f s and cannot cache it (no writable cache "
                            "directory beside the package or in the user's cache; set NUMBA_CACHE_DIR): every "
                            "process compiles it again", seconds)

@@ -32,7 +32,8 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis
-from rtabmap_ros2.core.graph import Link, LinkType, agree, agree_many, default_information, inverse_transforms, loop_type, residuals
+from rtabmap_ros2.core.graph import (Link, LinkType, PoseStack, agree, agree_many, default_information, inverse_transforms,
+                                     link_ends, loop_type, residuals)
 from rtabmap_ros2.core.grid import scan_conflict
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.params import Params
@@ -328,23 +329,34 @@ def max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: boo
     old sessions from 7.8 to 3.2 (their kept poses are each session's own solution). A false loop
     closure bends links by far more than that.
     """
-    links = [link for link in links if link.from_id in poses and link.to_id in poses]
-    if not links:
+    stack = PoseStack(poses)
+    ends = link_ends(links)
+    rows, found = stack.rows(ends)
+    inside = found.all(axis=1)
+    if not inside.any():
         return 0.0
-    T_inverse = inverse_transforms(links)
-    residual = residuals(poses, links, T_inverse)
+    rows = rows[inside]
+    T_inverse = inverse_transforms([link for link, kept in zip(links, inside.tolist()) if kept])
+    residual = stack.residuals(rows, T_inverse)
     t_err, r_err = error_sizes(residual, planar)
     if before:
-        had = np.fromiter((link.from_id in before and link.to_id in before and link.key() not in new
-                           for link in links), bool, len(links))
+        ends = ends[inside]
+        before_stack = PoseStack(before)
+        rows_before, found_before = before_stack.rows(ends)
+        keys = np.sort(ends, axis=1)
+        is_new = np.zeros(len(ends), bool)
+        for a, b in new:
+            is_new |= (keys[:, 0] == a) & (keys[:, 1] == b)
+        had = found_before.all(axis=1) & ~is_new
         if had.any():
-            was = residuals(before, [link for link, h in zip(links, had) if h], T_inverse[had])
+            was = before_stack.residuals(rows_before[had], T_inverse[had])
             # How far each error moved: inv(was) @ now (its translation is R_was' (t_now - t_was)).
             t_was, r_was = error_sizes(was, planar)
             t_moved, r_moved = error_sizes(transforms.inverse_many(was) @ residual[had], planar)
             t_err[had] = np.where(t_err[had] > t_was, np.minimum(t_err[had], t_moved), 0.0)
             r_err[had] = np.where(r_err[had] > r_was, np.minimum(r_err[had], r_moved), 0.0)
-    info = np.array([link.information.diagonal() for link in links], dtype=float)
+    info = np.array([link.information for link in links], dtype=float).reshape(-1, 6, 6)[inside]
+    info = info.diagonal(axis1=1, axis2=2)
     if planar:
         t_info, r_info = np.minimum(info[:, 0], info[:, 1]), info[:, 5]
     else:

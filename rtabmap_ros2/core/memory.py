@@ -349,8 +349,9 @@ class Memory:
         """LTM neighbours of the hypothesis within ``bayes.neighborhood`` hops: time neighbours
         first, then space neighbours, nearest first (then by id) (§III-E); the first ``limit``
         not in ``exclude``. The search reads an LTM location's links from the database
-        (RTAB-Map's Memory::getNeighborsId) and stops at the first hop that gives enough."""
-        if hypothesis_id not in self.signatures:
+        (RTAB-Map's Memory::getNeighborsId) and stops at the first hop that gives enough. Nothing
+        to search while LTM is empty (every frame until memory management first transfers)."""
+        if hypothesis_id not in self.signatures or not self.ltm_size:
             return []
         excluded = set(exclude)
         found: list[int] = []

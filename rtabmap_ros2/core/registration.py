@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.grid import voxel_filter
+from rtabmap_ros2.core.nearest import NearestWithin
 from rtabmap_ros2.core.params import RegistrationParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 from rtabmap_ros2.core.signature import Signature
@@ -879,10 +880,10 @@ def _spread_2d(points: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(centred ** 2, axis=1))))
 
 
-def _line_normals(points: np.ndarray, tree: cKDTree) -> np.ndarray:
-    """Unit normals (N,2) of the local line through each point's neighbours; NaN where unreliable."""
-    k = min(ICP_NORMAL_NEIGHBORS, len(points))
-    dist, idx = tree.query(points, k=k)
+def _line_normals(points: np.ndarray) -> np.ndarray:
+    """Unit normals (N,2) of the local line through each point's neighbours; NaN where unreliable
+    (the ICP_NORMAL_NEIGHBORS nearest points, itself included, reach beyond ICP_NORMAL_MAX_RADIUS)."""
+    idx, reach = NearestWithin(points, ICP_NORMAL_MAX_RADIUS).k_nearest(ICP_NORMAL_NEIGHBORS)
     neighbors = points[idx]
     centred = neighbors - neighbors.mean(axis=1, keepdims=True)
     x, y = centred[..., 0], centred[..., 1]
@@ -891,7 +892,7 @@ def _line_normals(points: np.ndarray, tree: cKDTree) -> np.ndarray:
     # batched eigh over every point of a scan map, which was a fifth of a neighbour link's ICP).
     theta = 0.5 * np.arctan2(2.0 * np.sum(x * y, axis=1), np.sum(x * x, axis=1) - np.sum(y * y, axis=1))
     normals = np.column_stack([-np.sin(theta), np.cos(theta)])
-    normals[dist[:, -1] > ICP_NORMAL_MAX_RADIUS] = np.nan
+    normals[reach > ICP_NORMAL_MAX_RADIUS] = np.nan
     return normals
 
 
@@ -945,15 +946,15 @@ def _icp(source_xy: np.ndarray, target_xy: np.ndarray, T_init: np.ndarray, prior
     state = x0.copy()
     if len(src) < ICP_MIN_CORRESPONDENCES or len(tgt) < ICP_MIN_CORRESPONDENCES:
         return _IcpFit(transforms.from_xy_yaw(*state), 0.0, float("inf"), np.zeros((3, 3)))
-    tree = cKDTree(tgt)
-    normals = _line_normals(tgt, tree)
+    normals = _line_normals(tgt)
     has_normal = np.isfinite(normals).all(axis=1)
+    nearest = NearestWithin(tgt, max_correspondence_distance)
 
     def match(x: float, y: float, yaw: float):
         c, s = np.cos(yaw), np.sin(yaw)
         moved = src @ np.array([[c, s], [-s, c]]) + (x, y)
-        dist, idx = tree.query(moved, distance_upper_bound=max_correspondence_distance)
-        ok = np.isfinite(dist)
+        idx = nearest.query(moved)
+        ok = idx >= 0
         idx_ok = idx[ok]
         ok_normal = has_normal[idx_ok]
         return moved[ok][ok_normal], idx_ok[ok_normal], int(ok.sum())
