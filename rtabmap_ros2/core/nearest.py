@@ -113,7 +113,6 @@ class NearestWithin:
                  queries, self.bound_sq, out)
         return out
 
-
     def k_nearest(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Each reference point's ``k`` nearest reference points (itself first), nearest first, and
         the distance (m) of the k-th: ``(index (N, k) int64, distance (N,))``. Exact where that
