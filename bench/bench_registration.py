@@ -1,7 +1,8 @@
 """Registration: loop closure transforms on real RGB-D loop pairs, ICP, neighbour links, min_inliers.
 
-Usage: ``python bench/bench_registration.py [--quick]``. Prints tables and writes
-``bench/results/registration.json``.
+Usage: ``python bench/bench_registration.py [--quick] [--parts loops,icp,neighbors,inliers,recording]``.
+Prints tables and writes ``bench/results/registration.json`` (with ``--parts``, only those parts'
+entries are replaced).
 
 1. Loop closure transforms (issue 49): the 24 real TUM fr1_rpy loop pairs (hand-held Kinect
    turning fast: motion blur, rolling shutter) and the 2 fr1_xyz pairs, mocap ground truth. Each
@@ -26,6 +27,13 @@ Usage: ``python bench/bench_registration.py [--quick]``. Prints tables and write
 4. min_inliers: inlier counts of true pairs (same scene) vs wrong pairs (TUM frames vs the
    RTAB-Map repository frames, different scenes), ORB 1000 with mutual matches, and with mutual
    matches + the NNDR test (0.8) that the vocabulary applies; PnP and 3D-3D.
+5. A real recording (issue 49's recording yardstick, through the commands a user runs): the 48
+   distinct fr1_rpy frames of the loop pairs in time order as a TUM folder, ``tum2bag`` with a
+   drifting odometry (0.5 deg/s, 1 cm/s; three drift seeds), ``map`` in 6 DoF, every frame a node
+   and at 2 Hz; per run the loop closures kept, those off the motion capture by more than 5 cm or
+   3 deg, the worst, and the map's ATE against the odometry's. Images as recorded with the
+   calibration's distortion in CameraInfo (tum2bag's default), rectified (``--rectify``), and as
+   recorded but with D left out (the baseline: what the map made before the distortion was read).
 """
 
 from __future__ import annotations
@@ -39,6 +47,7 @@ import time
 from pathlib import Path
 
 import csv
+import subprocess
 import tempfile
 from dataclasses import replace
 
@@ -84,6 +93,15 @@ PHOTO_CAUCHY = 2.0
 # neighbour links, each good to (m, deg).
 GRAPH_CHECK_STEPS = 10
 GRAPH_CHECK_STEP_SIGMA = (0.002, 0.1)
+# The recording (part 5): tum2bag's drift, its seeds, the detection rates (0: every frame), and the
+# issue's yardstick for a loop closure kept in the map (off by more than this: wrong).
+RECORDING_DRIFT = ("--drift-yaw-deg-s", "0.5", "--drift-m-s", "0.01")
+RECORDING_SEEDS = (0, 1, 2)
+RECORDING_RATES = (0.0, 2.0)
+RECORDING_OFF_CM, RECORDING_OFF_DEG = 5.0, 3.0
+# The fr1 calibration without its distortion (tum2bag --camera numbers): the baseline's CameraInfo.
+FR1_PINHOLE = "517.306408,516.469215,318.643040,255.313989"
+RECORDING_IMAGES = {"raw, D in CameraInfo": (), "rectified": ("--rectify",), "raw, D left out": ("--camera", FR1_PINHOLE)}
 
 
 def load_image(kind: str, name: str):
@@ -535,6 +553,76 @@ def neighbor_links_real(logs: tuple[str, ...], seed: int = 0) -> dict:
     return {kind: _summarise_links(r) for kind, r in runs.items()}
 
 
+def _cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rtabmap_ros2.cli.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=REPO)
+
+
+def _recording_run(folder: Path, work: Path, images: tuple[str, ...], seed: int, rate: float) -> dict:
+    """tum2bag + map (6 DoF) + every loop closure of the database judged against the motion capture."""
+    from rtabmap_ros2.core.global_map import load_global_map
+    from rtabmap_ros2.io.trajectory import read_tum
+
+    bag, db = work / f"bag_{len(list(work.iterdir()))}", work / f"map_{len(list(work.iterdir()))}.db"
+    for command in (("tum2bag", folder, "--out", bag, "--seed", seed, *RECORDING_DRIFT, *images),
+                    ("map", bag, "--db", db, "--no-progress", "--set", "Reg/Force3DoF=false",
+                     "--set", f"Rtabmap/DetectionRate={rate:g}")):
+        done = _cli(*command)
+        if done.returncode != 0:
+            raise RuntimeError(f"{command[0]} failed: {done.stderr.strip().splitlines()[-1:]}")
+    gmap = load_global_map(db, Params.from_yaml(default_config_path()).with_overrides(["registration.planar=false"]))
+    truth = read_tum(bag / "ground_truth.txt")
+    at = dict(zip(truth.stamps_ns.tolist(), truth.poses))
+    errors = []
+    for link in gmap.links:
+        if link.type.is_loop_closure:
+            E = link.residual(at[gmap.stamps_ns[link.from_id]], at[gmap.stamps_ns[link.to_id]])
+            errors.append((100 * float(np.linalg.norm(E[:3, 3])), float(np.degrees(transforms.rotation_angle(E)))))
+
+    def ate_of(poses):
+        ids = sorted(poses)
+        return ate(Trajectory(np.array([gmap.stamps_ns[i] for i in ids]), np.stack([poses[i] for i in ids])),
+                   truth).rmse_m
+
+    off = [e for e in errors if e[0] > RECORDING_OFF_CM or e[1] > RECORDING_OFF_DEG]
+    return {"seed": seed, "rate_hz": rate, "nodes": len(gmap.poses), "kept": len(errors), "off": len(off),
+            "worst_cm": max((e[0] for e in errors), default=0.0), "worst_deg": max((e[1] for e in errors), default=0.0),
+            "map_ate_m": ate_of(gmap.poses), "odometry_ate_m": ate_of(gmap.odom_poses)}
+
+
+def recording(seeds: tuple[int, ...]) -> dict:
+    """Part 5: the 48 real frames as a recording, per way of giving the images (RECORDING_IMAGES),
+    detection rate and drift seed; the yardstick per run (>= 5 kept, none off, map ATE <= 0.5x)."""
+    sys.path.insert(0, str(REPO / "test"))
+    from conftest import write_tum_folder  # the integration test's recording, the same frames
+
+    result = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = write_tum_folder(DATA, Path(tmp))
+        for name, images in RECORDING_IMAGES.items():
+            for rate in RECORDING_RATES:
+                runs = []
+                for seed in seeds:
+                    work = Path(tmp) / "runs"
+                    work.mkdir(exist_ok=True)
+                    runs.append(_recording_run(folder, work, images, seed, rate))
+                result[f"{name} @ {'every frame' if rate == 0 else f'{rate:g} Hz'}"] = runs
+    return result
+
+
+def print_recording(result: dict) -> None:
+    print(f"\nThe 48 real fr1_rpy frames as a recording (tum2bag drift {' '.join(RECORDING_DRIFT)}; map 6 DoF); "
+          f"per drift seed: nodes, loop closures kept (off > {RECORDING_OFF_CM:g} cm / {RECORDING_OFF_DEG:g} deg), "
+          "worst, map ATE / odometry ATE")
+    for name, runs in result.items():
+        cells = [f"{r['nodes']} n, {r['kept']} kept ({r['off']} off), worst {r['worst_cm']:.2f} cm / "
+                 f"{r['worst_deg']:.2f} deg, ATE {r['map_ate_m']:.4f} / {r['odometry_ate_m']:.4f} m" for r in runs]
+        held = all(r["kept"] >= 5 and r["off"] == 0 and r["map_ate_m"] <= 0.5 * r["odometry_ate_m"] for r in runs)
+        print(f"  {name:<34} {'yardstick held' if held else 'yardstick NOT held'}")
+        for seed_cell in cells:
+            print(f"    {seed_cell}")
+
+
 def print_neighbor_links(title: str, table: dict) -> None:
     print(f"\nNeighbour links, {title}, error vs ground truth ({table['odometry']['links']} links):")
     print(f"  {'':<22} {'median mm':>9} {'deg':>6} {'yaw p99':>8} {'max':>6} {'mean signed':>11} {'ms':>5}  "
@@ -546,41 +634,58 @@ def print_neighbor_links(title: str, table: dict) -> None:
               f"{'  (' + str(r['refused']) + ' refused)' if r['refused'] else ''}")
 
 
+PARTS = ("loops", "icp", "neighbors", "inliers", "recording")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer seeds and ICP pairs")
+    parser.add_argument("--quick", action="store_true", help="fewer seeds, ICP pairs and drift seeds")
+    parser.add_argument("--parts", default=",".join(PARTS),
+                        help=f"comma-separated parts of {PARTS} (default: all); the results of the others "
+                             "stay as they are in the JSON")
     args = parser.parse_args(argv)
+    parts = args.parts.split(",")
+    if unknown := set(parts) - set(PARTS):
+        parser.error(f"--parts: unknown {sorted(unknown)}; expected some of {PARTS}")
     if not DATA.is_dir():
         print(f"no shared data at {DATA}", file=sys.stderr)
         return 1
-    loops = loop_pairs(args.quick)
-    print_loop_pairs(loops)
-    icp = icp_accuracy(20 if args.quick else 10)
-    print(f"\nICP on intel-corrected k -> k+5 ({icp['pairs']} pairs, start 10 cm / 3 deg off): median "
-          f"{icp['median_translation_error_cm']:.2f} cm / {icp['median_rotation_error_deg']:.3f} deg, p90 "
-          f"{icp['p90_translation_error_cm']:.2f} cm / {icp['p90_rotation_error_deg']:.3f} deg, "
-          f"overlap {icp['median_overlap']:.2f}, {icp['median_ms']:.2f} ms")
-    nlr = neighbor_link_refining(1, 60) if args.quick else neighbor_link_refining(5, None)
-    print_neighbor_links(f"{1 if args.quick else 5} simulated session(s)", nlr)
-    real_logs = ("intel",) if args.quick else ("intel", "aces", "csail")
-    nlr_real = neighbor_links_real(real_logs)
-    print_neighbor_links(f"real CARMEN logs {' / '.join(real_logs)} with simulated wheel errors", nlr_real)
-    counts = inlier_counts()
-    print("\nInliers, PnP (2 px) / 3D-3D (0.1 m): mutual matches | mutual + NNDR 0.8")
-    for r in counts:
-        m, n = r["mutual"], r["nndr"]
-        print(f"  {r['pair']:<38} {r['kind']:<18} corr {m['correspondences']:>4} inl {m['pnp']:>4} / {m['3d']:>4} | "
-              f"corr {n['correspondences']:>4} inl {n['pnp']:>4} / {n['3d']:>4}")
-    wrong = [r for r in counts if r["kind"] == "wrong"]
-    true = [r for r in counts if r["kind"].startswith("true")]
-    summary = {f"{key} {est}": {"max_wrong_inliers": max(r[key][est] for r in wrong),
-                                "min_true_inliers": min(r[key][est] for r in true)}
-               for key in ("mutual", "nndr") for est in ("pnp", "3d")}
-    print(f"  summary: {summary}")
+    results = json.loads(RESULTS.read_text()) if RESULTS.exists() and len(parts) < len(PARTS) else {}
+    if "loops" in parts:
+        results["loop_pairs"] = loops = loop_pairs(args.quick)
+        print_loop_pairs(loops)
+    if "icp" in parts:
+        results["icp"] = icp = icp_accuracy(20 if args.quick else 10)
+        print(f"\nICP on intel-corrected k -> k+5 ({icp['pairs']} pairs, start 10 cm / 3 deg off): median "
+              f"{icp['median_translation_error_cm']:.2f} cm / {icp['median_rotation_error_deg']:.3f} deg, p90 "
+              f"{icp['p90_translation_error_cm']:.2f} cm / {icp['p90_rotation_error_deg']:.3f} deg, "
+              f"overlap {icp['median_overlap']:.2f}, {icp['median_ms']:.2f} ms")
+    if "neighbors" in parts:
+        results["neighbor_link_refining"] = nlr = neighbor_link_refining(1, 60) if args.quick \
+            else neighbor_link_refining(5, None)
+        print_neighbor_links(f"{1 if args.quick else 5} simulated session(s)", nlr)
+        real_logs = ("intel",) if args.quick else ("intel", "aces", "csail")
+        results["neighbor_links_real"] = nlr_real = neighbor_links_real(real_logs)
+        print_neighbor_links(f"real CARMEN logs {' / '.join(real_logs)} with simulated wheel errors", nlr_real)
+    if "inliers" in parts:
+        results["inlier_counts"] = counts = inlier_counts()
+        print("\nInliers, PnP (2 px) / 3D-3D (0.1 m): mutual matches | mutual + NNDR 0.8")
+        for r in counts:
+            m, n = r["mutual"], r["nndr"]
+            print(f"  {r['pair']:<38} {r['kind']:<18} corr {m['correspondences']:>4} inl {m['pnp']:>4} / {m['3d']:>4} | "
+                  f"corr {n['correspondences']:>4} inl {n['pnp']:>4} / {n['3d']:>4}")
+        wrong = [r for r in counts if r["kind"] == "wrong"]
+        true = [r for r in counts if r["kind"].startswith("true")]
+        results["summary"] = summary = {f"{key} {est}": {"max_wrong_inliers": max(r[key][est] for r in wrong),
+                                                         "min_true_inliers": min(r[key][est] for r in true)}
+                                        for key in ("mutual", "nndr") for est in ("pnp", "3d")}
+        print(f"  summary: {summary}")
+    if "recording" in parts:
+        results["recording"] = rec = recording(RECORDING_SEEDS[:1] if args.quick else RECORDING_SEEDS)
+        print_recording(rec)
+    results["quick"] = args.quick
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps({"loop_pairs": loops, "icp": icp, "neighbor_link_refining": nlr,
-                                   "neighbor_links_real": nlr_real, "inlier_counts": counts, "summary": summary,
-                                   "quick": args.quick}, indent=2, default=float))
+    RESULTS.write_text(json.dumps(results, indent=2, default=float))
     print(f"wrote {RESULTS}")
     return 0
 

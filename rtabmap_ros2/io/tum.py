@@ -191,7 +191,7 @@ def interpolate_pose(stamps_ns: np.ndarray, poses: np.ndarray, stamp_ns: int, ma
 
 
 def drifting_odometry(stamps_ns: list[int], poses: list[np.ndarray], drift_yaw_deg_s: float, drift_m_s: float,
-                      rng: np.random.Generator) -> tuple[list[np.ndarray], Optional[np.ndarray]]:
+                      rng: np.random.Generator) -> tuple[list[np.ndarray], Optional[list[np.ndarray]]]:
     """Odometry (4x4, the world frame) integrating the true motion with a drift, and its covariance.
 
     The heading error grows at ``drift_yaw_deg_s`` about the world's vertical (z) and the position
@@ -201,9 +201,13 @@ def drifting_odometry(stamps_ns: list[int], poses: list[np.ndarray], drift_yaw_d
     roll and pitch (gravity) kept. The first pose is the first true pose.
 
     Returns:
-        ``(poses, covariance)``: covariance is the diagonal 6x6 (x y z roll pitch yaw) of the error
-        the drift adds over :data:`ODOM_COVARIANCE_PERIOD_S`, or None without drift (the mapper
-        then uses its graph.odom_default_variance).
+        ``(poses, covariances)``: per pose, the diagonal 6x6 (x y z roll pitch yaw) of the error the
+        drift adds over :data:`ODOM_COVARIANCE_PERIOD_S`, in the body's axes as the mapper reads a
+        link's covariance (RTAB-Map's convention): the heading drift about the world's vertical
+        falls on the body's roll, pitch and yaw in proportion to the vertical's components in the
+        body frame (a camera looking down at a desk turns the drift into roll; a level robot keeps
+        it all in yaw), and the position drift's variance on every axis. None without drift (the
+        mapper then uses its graph.odom_default_variance).
     """
     yaw_rate = math.radians(drift_yaw_deg_s) * (1.0 if rng.random() < 0.5 else -1.0)
     heading = rng.uniform(0.0, 2.0 * math.pi)
@@ -220,8 +224,14 @@ def drifting_odometry(stamps_ns: list[int], poses: list[np.ndarray], drift_yaw_d
     if drift_yaw_deg_s == 0 and drift_m_s == 0:
         return odom, None
     var_t = max((drift_m_s * ODOM_COVARIANCE_PERIOD_S) ** 2, MIN_VARIANCE)
-    var_yaw = max((math.radians(drift_yaw_deg_s) * ODOM_COVARIANCE_PERIOD_S) ** 2, MIN_VARIANCE)
-    return odom, np.diag([var_t, var_t, var_t, MIN_VARIANCE, MIN_VARIANCE, var_yaw])
+    var_heading = (math.radians(drift_yaw_deg_s) * ODOM_COVARIANCE_PERIOD_S) ** 2
+    covariances = []
+    for T in odom:
+        up_in_body = T[2, :3]   # the world's vertical in the body's axes (row 2 of R_world_body)
+        variances = np.full(6, var_t)
+        variances[3:] = np.maximum(var_heading * up_in_body ** 2, MIN_VARIANCE)
+        covariances.append(np.diag(variances))
+    return odom, covariances
 
 
 def read_depth_m(path: Path, size: tuple[int, int], depth_scale: float = TUM_DEPTH_SCALE) -> np.ndarray:
@@ -303,9 +313,9 @@ def tum_to_bag(folder, out, camera: Optional[TumCamera] = None, depth_encoding: 
         logger.warning("%s: %d colour images left out (%s)", folder, count, reason)
     truth = [f.T_world_base for f in frames]
     stamps = [f.stamp_ns for f in frames]
-    odom, covariance = drifting_odometry(stamps, truth, drift_yaw_deg_s, drift_m_s, np.random.default_rng(seed))
+    odom, covariances = drifting_odometry(stamps, truth, drift_yaw_deg_s, drift_m_s, np.random.default_rng(seed))
     undistort = _Undistorter(camera) if rectify else None
-    bag_path = write_bag(out, _sensor_frames(frames, odom, covariance, camera, undistort), topics=topics,
+    bag_path = write_bag(out, _sensor_frames(frames, odom, covariances, camera, undistort), topics=topics,
                          storage=storage, depth_format=DEPTH_FORMATS[depth_encoding],
                          camera_distortion=None if rectify else camera.distortion)
     gt_path = bag_path / GROUND_TRUTH_NAME
@@ -315,12 +325,12 @@ def tum_to_bag(folder, out, camera: Optional[TumCamera] = None, depth_encoding: 
     return TumConversion(bag_path, gt_path, len(frames), left_out, camera, error)
 
 
-def _sensor_frames(frames: list[TumFrame], odom: list[np.ndarray], covariance: Optional[np.ndarray],
+def _sensor_frames(frames: list[TumFrame], odom: list[np.ndarray], covariances: Optional[list[np.ndarray]],
                    camera: TumCamera, undistort: Optional[_Undistorter]) -> Iterator[SensorFrame]:
     """The frames as SensorFrames (images read one at a time)."""
     model = CameraModel(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
                         np.array(DEFAULT_T_BASE_CAMERA))
-    for frame, T_odom_base in zip(frames, odom):
+    for k, (frame, T_odom_base) in enumerate(zip(frames, odom)):
         rgb = read_rgb(frame.rgb_path)
         if rgb is None:
             raise DatasetError(f"colour image {frame.rgb_path} cannot be read (empty or not an image)")
@@ -330,6 +340,7 @@ def _sensor_frames(frames: list[TumFrame], odom: list[np.ndarray], covariance: O
         depth = read_depth_m(frame.depth_path, (camera.width, camera.height))
         if undistort is not None:
             rgb, depth = undistort(rgb, nearest=False), undistort(depth, nearest=True)
+        covariance = None if covariances is None else covariances[k]
         yield SensorFrame(stamp_ns=frame.stamp_ns, T_odom_base=T_odom_base, odom_covariance=covariance, rgb=rgb,
                           depth_m=depth, camera=model)
 

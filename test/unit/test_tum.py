@@ -59,7 +59,16 @@ def test_drift_grows_at_the_given_rates_and_is_seeded():
     assert R_err[2, 2] == pytest.approx(1.0)   # about the vertical only: roll and pitch kept
     assert odom[-1][2, 3] == pytest.approx(truth[-1][2, 3])
     assert 0.05 < np.linalg.norm(odom[-1][:3, 3] - truth[-1][:3, 3]) < 0.15   # 0.1 m drift + 1 m walked 2.5 deg off
-    assert cov[0, 0] == pytest.approx(1e-4) and cov[5, 5] == pytest.approx(math.radians(0.5) ** 2)
+    # The covariance in the body's axes: 1 cm over 1 s on each axis; the heading drift (0.5 deg over
+    # 1 s about the vertical) shared by roll, pitch and yaw as the tilted body sees the vertical.
+    var_heading = math.radians(0.5) ** 2
+    for T, C in ((odom[0], cov[0]), (odom[-1], cov[-1])):
+        assert np.allclose(np.diag(C)[:3], 1e-4) and np.count_nonzero(C - np.diag(np.diag(C))) == 0
+        np.testing.assert_allclose(np.diag(C)[3:], np.maximum(var_heading * T[2, :3] ** 2, 1e-6))
+    assert np.diag(cov[0])[3] > 1e-6 and np.diag(cov[0])[4] > 1e-6   # rolled 0.3 and pitched -0.2 rad
+    level, level_cov = drifting_odometry(stamps[:2], [transforms.from_xy_yaw(0.0, 0.0, 0.4)] * 2, 0.5, 0.01,
+                                         np.random.default_rng(0))
+    assert np.diag(level_cov[1])[5] == pytest.approx(var_heading) and np.diag(level_cov[1])[3] == 1e-6
     again, _ = drifting_odometry(stamps, truth, 0.5, 0.01, np.random.default_rng(3))
     np.testing.assert_array_equal(again[-1], odom[-1])
 
