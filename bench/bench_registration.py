@@ -101,7 +101,8 @@ RECORDING_RATES = (0.0, 2.0)
 RECORDING_OFF_CM, RECORDING_OFF_DEG = 5.0, 3.0
 # The fr1 calibration without its distortion (tum2bag --camera numbers): the baseline's CameraInfo.
 FR1_PINHOLE = "517.306408,516.469215,318.643040,255.313989"
-RECORDING_IMAGES = {"raw, D in CameraInfo": (), "rectified": ("--rectify",), "raw, D left out": ("--camera", FR1_PINHOLE)}
+RECORDING_IMAGES = {"raw, D in CameraInfo": (), "rectified": ("--rectify",),
+                    "raw, D left out": ("--camera", FR1_PINHOLE)}
 
 
 def load_image(kind: str, name: str):
@@ -559,11 +560,12 @@ def _cli(*args) -> subprocess.CompletedProcess:
 
 
 def _recording_run(folder: Path, work: Path, images: tuple[str, ...], seed: int, rate: float) -> dict:
-    """tum2bag + map (6 DoF) + every loop closure of the database judged against the motion capture."""
+    """tum2bag + map (6 DoF) into the empty folder ``work``, then every loop closure of the database
+    judged against the motion capture."""
     from rtabmap_ros2.core.global_map import load_global_map
     from rtabmap_ros2.io.trajectory import read_tum
 
-    bag, db = work / f"bag_{len(list(work.iterdir()))}", work / f"map_{len(list(work.iterdir()))}.db"
+    bag, db = work / "bag", work / "map.db"
     for command in (("tum2bag", folder, "--out", bag, "--seed", seed, *RECORDING_DRIFT, *images),
                     ("map", bag, "--db", db, "--no-progress", "--set", "Reg/Force3DoF=false",
                      "--set", f"Rtabmap/DetectionRate={rate:g}")):
@@ -601,11 +603,7 @@ def recording(seeds: tuple[int, ...]) -> dict:
         folder = write_tum_folder(DATA, Path(tmp))
         for name, images in RECORDING_IMAGES.items():
             for rate in RECORDING_RATES:
-                runs = []
-                for seed in seeds:
-                    work = Path(tmp) / "runs"
-                    work.mkdir(exist_ok=True)
-                    runs.append(_recording_run(folder, work, images, seed, rate))
+                runs = [_recording_run(folder, Path(tempfile.mkdtemp(dir=tmp)), images, seed, rate) for seed in seeds]
                 result[f"{name} @ {'every frame' if rate == 0 else f'{rate:g} Hz'}"] = runs
     return result
 
@@ -672,7 +670,8 @@ def main(argv: list[str] | None = None) -> int:
         print("\nInliers, PnP (2 px) / 3D-3D (0.1 m): mutual matches | mutual + NNDR 0.8")
         for r in counts:
             m, n = r["mutual"], r["nndr"]
-            print(f"  {r['pair']:<38} {r['kind']:<18} corr {m['correspondences']:>4} inl {m['pnp']:>4} / {m['3d']:>4} | "
+            print(f"  {r['pair']:<38} {r['kind']:<18} "
+                  f"corr {m['correspondences']:>4} inl {m['pnp']:>4} / {m['3d']:>4} | "
                   f"corr {n['correspondences']:>4} inl {n['pnp']:>4} / {n['3d']:>4}")
         wrong = [r for r in counts if r["kind"] == "wrong"]
         true = [r for r in counts if r["kind"].startswith("true")]

@@ -27,6 +27,7 @@ around it when they are at most :data:`GROUND_TRUTH_MAX_GAP_S` apart):
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import re
@@ -330,7 +331,7 @@ def _sensor_frames(frames: list[TumFrame], odom: list[np.ndarray], covariances: 
     """The frames as SensorFrames (images read one at a time)."""
     model = CameraModel(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
                         np.array(DEFAULT_T_BASE_CAMERA))
-    for k, (frame, T_odom_base) in enumerate(zip(frames, odom)):
+    for frame, T_odom_base, covariance in zip(frames, odom, covariances or itertools.repeat(None)):
         rgb = read_rgb(frame.rgb_path)
         if rgb is None:
             raise DatasetError(f"colour image {frame.rgb_path} cannot be read (empty or not an image)")
@@ -340,7 +341,6 @@ def _sensor_frames(frames: list[TumFrame], odom: list[np.ndarray], covariances: 
         depth = read_depth_m(frame.depth_path, (camera.width, camera.height))
         if undistort is not None:
             rgb, depth = undistort(rgb, nearest=False), undistort(depth, nearest=True)
-        covariance = None if covariances is None else covariances[k]
         yield SensorFrame(stamp_ns=frame.stamp_ns, T_odom_base=T_odom_base, odom_covariance=covariance, rgb=rgb,
                           depth_m=depth, camera=model)
 
