@@ -284,6 +284,14 @@ def _spread(values) -> dict:
     return {"n": int(v.size), "median": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(v.max())}
 
 
+def _step_spread(stored: list[dict]) -> dict:
+    """Median and p95 (ms) of every step (statistics ``time_<step>_ms``) over some frames."""
+    if not stored:
+        return {}
+    return {k: {"median": float(np.median([s[f"time_{k}_ms"] for s in stored])),
+                "p95": float(np.percentile([s[f"time_{k}_ms"] for s in stored], 95))} for k in TIMING_KEYS}
+
+
 def run_mapping(bags: list[Path], db: Path, settings: Settings, gt: Trajectory, out_dir: Path, label: str) -> dict:
     """Map ``bags`` with the ``map`` command as a user runs it (its own process: bags in, database and
     ``--stats`` CSV out; the figures are the CSV's), export, evaluate."""
@@ -383,6 +391,10 @@ def run_mapping(bags: list[Path], db: Path, settings: Settings, gt: Trajectory, 
         # RGBD/OptimizeMaxError), and the others: where the optimisation's re-solves are.
         "ptime_by_loop_closure_ms": {"accepted": _spread(ptime[with_loop]), "rejected": _spread(ptime[rejected]),
                                      "other": _spread(ptime[~with_loop & ~rejected])},
+        # Where a loop closure frame's time goes: each step's median and p95 per kind of frame.
+        "step_ms_by_loop_closure": {kind: _step_spread([s for s, m in zip(stored, mask.tolist()) if m])
+                                    for kind, mask in (("accepted", with_loop), ("rejected", rejected),
+                                                       ("other", ~with_loop & ~rejected))},
         "time_medians_ms": {k: float(np.median([s[f"time_{k}_ms"] for s in stored])) for k in TIMING_KEYS},
         "time_p95_ms": {k: float(np.percentile([s[f"time_{k}_ms"] for s in stored], 95)) for k in TIMING_KEYS},
         "ptime_spikes": [{"frame": int(i) + 1, "process_time_ms": round(float(ptime[i]), 1),
@@ -628,6 +640,11 @@ def run_seeds(args, seeds: list[int]) -> int:
                                 and row["frames/s"] >= SEED_LIMITS["frames/s"] and row["ATE (m)"] <= SEED_LIMITS["ATE (m)"]
                                 and row["components"] == 1 and row["wrong kept"] == 0)
         rows.append(row)
+        steps = r["step_ms_by_loop_closure"]
+        if steps["accepted"] and steps["other"]:
+            print(f"seed {seed}: loop closure frames over the others, median step ms: " + ", ".join(
+                f"{k} +{steps['accepted'][k]['median'] - steps['other'][k]['median']:.1f}" for k in TIMING_KEYS
+                if abs(steps["accepted"][k]["median"] - steps["other"][k]["median"]) >= 0.5), flush=True)
         results["rows"] = rows
         results["machine"]["load_avg_end"] = os.getloadavg()
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -26,14 +26,14 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import TYPE_CHECKING, Mapping, Optional, Protocol
+from typing import TYPE_CHECKING, Optional, Protocol
 
 import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis
-from rtabmap_ros2.core.graph import (Link, LinkType, PoseStack, agree, agree_many, default_information, inverse_transforms,
-                                     link_ends, loop_type, residuals)
+from rtabmap_ros2.core.graph import (Link, LinkTable, LinkType, PoseStack, agree, agree_many, default_information,
+                                     loop_type, residuals)
 from rtabmap_ros2.core.grid import scan_conflict
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.params import Params
@@ -42,7 +42,7 @@ from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.statistics import Statistics
 
 if TYPE_CHECKING:
-    from rtabmap_ros2.core.node_tables import PoseTable
+    from rtabmap_ros2.core.node_tables import PoseTable, SessionIds
 
 log = logging.getLogger(__name__)
 
@@ -329,18 +329,15 @@ def max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: boo
     old sessions from 7.8 to 3.2 (their kept poses are each session's own solution). A false loop
     closure bends links by far more than that.
     """
-    stack = PoseStack(poses)
-    ends = link_ends(links)
-    rows, found = stack.rows(ends)
+    stack, table = PoseStack(poses), LinkTable(links)
+    rows, found = stack.rows(table.ends)
     inside = found.all(axis=1)
     if not inside.any():
         return 0.0
-    rows = rows[inside]
-    T_inverse = inverse_transforms([link for link, kept in zip(links, inside.tolist()) if kept])
+    rows, ends, T_inverse = rows[inside], table.ends[inside], table.T_inverse[inside]
     residual = stack.residuals(rows, T_inverse)
     t_err, r_err = error_sizes(residual, planar)
     if before:
-        ends = ends[inside]
         before_stack = PoseStack(before)
         rows_before, found_before = before_stack.rows(ends)
         keys = np.sort(ends, axis=1)
@@ -355,8 +352,7 @@ def max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: boo
             t_moved, r_moved = error_sizes(transforms.inverse_many(was) @ residual[had], planar)
             t_err[had] = np.where(t_err[had] > t_was, np.minimum(t_err[had], t_moved), 0.0)
             r_err[had] = np.where(r_err[had] > r_was, np.minimum(r_err[had], r_moved), 0.0)
-    info = np.array([link.information for link in links], dtype=float).reshape(-1, 6, 6)[inside]
-    info = info.diagonal(axis1=1, axis2=2)
+    info = table.information_diagonal[inside]
     if planar:
         t_info, r_info = np.minimum(info[:, 0], info[:, 1]), info[:, 5]
     else:
@@ -383,14 +379,15 @@ def error_sizes(residual: np.ndarray, planar: bool) -> tuple[np.ndarray, np.ndar
     return np.linalg.norm(residual[:, :3, 3], axis=1), np.arccos(np.clip(cos, -1.0, 1.0))
 
 
-def fits_inter_session_majority(poses: dict[int, np.ndarray], links: list[Link], map_ids: Mapping[int, int]) -> bool:
+def fits_inter_session_majority(poses: dict[int, np.ndarray], links: list[Link], map_ids: SessionIds) -> bool:
     """True when, for every pair of sessions, most of their loop closures hold in ``poses``
     (each within graph.agree's distance and angle)."""
     inter = [link for link in links if link.type is LinkType.LOOP_INTER]
     if not inter:
         return True
-    pairs = np.array([sorted((map_ids[link.from_id], map_ids[link.to_id])) for link in inter])
-    held = agree_many(residuals(poses, inter))
+    table = LinkTable(inter)
+    pairs = np.sort(map_ids.of(table.ends), axis=1)
+    held = agree_many(residuals(poses, table))
     _, pair_index = np.unique(pairs, axis=0, return_inverse=True)
     pair_index = pair_index.reshape(-1)
     return bool(np.all(2 * np.bincount(pair_index, weights=held) >= np.bincount(pair_index)))

@@ -59,6 +59,14 @@ class SessionIds:
     def __contains__(self, node_id: int) -> bool:
         return self.get(node_id) is not None
 
+    def of(self, node_ids: np.ndarray) -> np.ndarray:
+        """Map id of each of ``node_ids`` (an int array of any shape), as ``[]`` answers it."""
+        k = np.searchsorted(self._starts, node_ids, side="right") - 1
+        unknown = (k < 0) | (node_ids > self._last_id)
+        if unknown.any():
+            raise KeyError(int(np.asarray(node_ids)[unknown].flat[0]))
+        return np.asarray(self._maps, dtype=np.int64)[k]
+
     def id_range(self, map_id: int) -> range:
         """Node ids that fall in map ``map_id`` (empty if it has no node)."""
         for k, m in enumerate(self._maps):

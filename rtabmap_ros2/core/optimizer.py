@@ -44,7 +44,7 @@ from typing import NamedTuple
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Link, bridges, connected_components
+from rtabmap_ros2.core.graph import Link, LinkType, bridges, connected_components
 from rtabmap_ros2.core.params import GraphParams
 from rtabmap_ros2.errors import OptimizationError
 
@@ -322,6 +322,12 @@ def _gtsam_poses(T: np.ndarray, planar: bool) -> list:
 
 def _poses_of(values, planar: bool) -> dict[int, np.ndarray]:
     """Every pose of ``values`` as a 4x4 array, at once."""
+    keys, stacked = _pose_stack(values, planar)
+    return dict(zip(keys, stacked))
+
+
+def _pose_stack(values, planar: bool) -> tuple[list[int], np.ndarray]:
+    """The keys of ``values`` and their poses as one (n, 4, 4) array (key order)."""
     import gtsam
 
     keys = list(values.keys())
@@ -337,7 +343,7 @@ def _poses_of(values, planar: bool) -> dict[int, np.ndarray]:
         rt = gtsam.utilities.extractPose3(values).reshape(-1, 12)
         out[:, :3, :3] = rt[:, :9].reshape(-1, 3, 3)
         out[:, :3, 3] = rt[:, 9:]
-    return dict(zip(keys, out))
+    return keys, out
 
 
 # -- optimisation --------------------------------------------------------------------------------
@@ -688,12 +694,11 @@ class IncrementalOptimizer:
         if self.params.robust:
             rejected, switched_off, more = self._robust_rounds(component, rejected)
             iterations += more
-        poses = _poses_of(self._values, self.planar)
+        keys, stacked = _pose_stack(self._values, self.planar)
         if self.planar:
             root_pose = transforms.project_planar(root_pose)
-        align = root_pose @ transforms.inverse(poses[root_id])
-        stacked = np.einsum("ij,njk->nik", align, np.stack(list(poses.values())))
-        return OptimizationResult(dict(zip(poses, stacked)), float("nan"), float("nan"), iterations, rejected,
+        align = root_pose @ transforms.inverse(stacked[keys.index(root_id)])
+        return OptimizationResult(dict(zip(keys, np.einsum("ij,njk->nik", align, stacked))), float("nan"), float("nan"), iterations, rejected,
                                   time.perf_counter() - start, switched_off)
 
     def _prior(self, node_id: int, pose: np.ndarray):
@@ -733,7 +738,7 @@ class IncrementalOptimizer:
         import gtsam
 
         threshold = self.params.robust_reject_scale
-        loops = [link for link in self._links.values() if link.type.is_loop_closure]
+        loops = [link for link in self._links.values() if link.type is not LinkType.NEIGHBOR]
         plain = _plain_factors(loops, self.planar)
         iterations = 0
         for _ in range(ROBUST_ROUNDS):

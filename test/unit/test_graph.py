@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Graph, Link, LinkType, agree, agree_many, component_labels, connected_components
+from rtabmap_ros2.core.graph import (Graph, Link, LinkTable, LinkType, agree, agree_many, component_labels, connected_components,
+                                     residuals)
 
 
 def _link(a: int, b: int) -> Link:
@@ -17,6 +18,20 @@ def test_components_of_a_node_set_largest_first():
     assert connected_components([1, 2, 3, 4, 5, 6], links) == [{1, 2, 3}, {5, 6}, {4}]
     assert connected_components([1, 3], [_link(1, 2), _link(2, 3)]) in ([{1}, {3}], [{3}, {1}])
     assert connected_components([], links) == []
+
+
+def test_link_table_and_residuals_are_each_links_own():
+    links = [Link(3, 7, LinkType.NEIGHBOR, transforms.from_xy_yaw(1.0, 0.5, 0.3), np.diag([1.0, 2, 3, 4, 5, 6])),
+             Link(7, 12, LinkType.LOOP_INTER, transforms.from_xy_yaw(-2.0, 0.0, -1.2), np.eye(6) * 9.0)]
+    table = LinkTable(links)
+    assert table.ends.tolist() == [[3, 7], [7, 12]]
+    for link, T_inverse, diagonal in zip(links, table.T_inverse, table.information_diagonal):
+        np.testing.assert_allclose(T_inverse, transforms.inverse(link.T_from_to), atol=1e-12)
+        np.testing.assert_array_equal(diagonal, np.diagonal(link.information))
+    poses = {3: transforms.from_xy_yaw(0.2, 0.1, 0.4), 7: transforms.from_xy_yaw(1.0, 2.0, 0.1),
+             12: transforms.from_xy_yaw(-1.0, 1.0, -0.7)}
+    for link, residual in zip(links, residuals(poses, table)):
+        np.testing.assert_allclose(residual, link.residual(poses[link.from_id], poses[link.to_id]), atol=1e-12)
 
 
 def test_agree_many_is_agree_of_each():

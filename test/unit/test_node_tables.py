@@ -21,6 +21,11 @@ def test_session_ids_are_ranges_of_node_ids():
     assert ids.id_range(1) == range(40, 60) and ids.id_range(3) == range(60, 61) and ids.id_range(2) == range(0)
     with pytest.raises(ValueError):
         ids.add(59, 3)  # ids only grow
+    nodes = np.array([[1, 40], [59, 60], [39, 56]])
+    assert ids.of(nodes).tolist() == [[ids[n] for n in row] for row in nodes.tolist()]
+    for unknown in (0, 61):
+        with pytest.raises(KeyError):
+            ids.of(np.array([1, unknown]))
 
 
 def test_pose_table_keeps_rigid_poses_by_node_id():
