@@ -643,7 +643,7 @@ def run_seeds(args, seeds: list[int]) -> int:
         steps = r["step_ms_by_loop_closure"]
         if steps["accepted"] and steps["other"]:
             print(f"seed {seed}: loop closure frames over the others, median step ms: " + ", ".join(
-                f"{k} +{steps['accepted'][k]['median'] - steps['other'][k]['median']:.1f}" for k in TIMING_KEYS
+                f"{k} {steps['accepted'][k]['median'] - steps['other'][k]['median']:+.1f}" for k in TIMING_KEYS
                 if abs(steps["accepted"][k]["median"] - steps["other"][k]["median"]) >= 0.5), flush=True)
         results["rows"] = rows
         results["machine"]["load_avg_end"] = os.getloadavg()
