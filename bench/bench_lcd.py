@@ -459,9 +459,7 @@ def _diff(a, b):
 def near_misses(rows: list[dict], gt: Path) -> int:
     """False loop closures of ``rows`` within :data:`NEAR_MISS_IMAGES` of a ground-truth pair of
     their query image (the strict scorer's false positives that are the right place, frames off)."""
-    import cv2
-
-    matrix = cv2.imread(str(gt), cv2.IMREAD_GRAYSCALE) == 255
+    matrix = _gt_matrix(gt)
     count = 0
     for i, row in enumerate(rows[:len(matrix)]):
         loop = int(_f(row, "loop_closure_id"))
@@ -512,11 +510,15 @@ def per_image(ds: DataSet, ours_dir: Path, ref_dir: Path, path: Path) -> None:
                             + [v for pair in zip(mine, theirs) for v in pair])
 
 
-def _gt_rows(gt: Path) -> np.ndarray:
+def _gt_matrix(gt: Path) -> np.ndarray:
+    """The ground truth as a boolean image x image matrix (pixel 255: the two close a loop)."""
     import cv2
 
-    image = cv2.imread(str(gt), cv2.IMREAD_GRAYSCALE)
-    return (image == 255).any(axis=1)
+    return cv2.imread(str(gt), cv2.IMREAD_GRAYSCALE) == 255
+
+
+def _gt_rows(gt: Path) -> np.ndarray:
+    return _gt_matrix(gt).any(axis=1)
 
 
 def distributions(ours_dir: Path, ref_dir: Path, gt: Path) -> dict:
@@ -576,7 +578,8 @@ def table(results: list[dict]) -> list[str]:
             rows.append((label, res["reference"], None))
         for label, s, agree in rows:
             lines.append(f"{res['set'][:14]:14} {label[:26]:26} {s['precision']:6.3f} {_fmt(s['recall'], 6)} "
-                         f"{_fmt(s['recall_at_100_precision'], 7)} {s['false_positives']:5d} {s['near_misses']:4d} {s['merged']:6d} "
+                         f"{_fmt(s['recall_at_100_precision'], 7)} {s['false_positives']:5d} {s['near_misses']:4d} "
+                         f"{s['merged']:6d} "
                          f"{s['vocabulary_size'] / 1000:7.1f} {s['max_wm_size']:6d} {s['median_ms'] or 0:7.1f} "
                          f"{'' if agree is None else f'{agree:6.3f}'}")
     return lines

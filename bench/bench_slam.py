@@ -374,6 +374,7 @@ def run_mapping(bags: list[Path], db: Path, settings: Settings, gt: Trajectory, 
     for sample in memory_samples:   # WM size at the frame each sample was taken at
         sample["wm_size"] = rows[min(sample["frame"], len(rows)) - 1]["wm_size"]
     frames = len(rows)
+    steps = _step_spread(stored)
     return {
         "command": " ".join(cmd[1:]), "load_avg": {"before": load_before, "after": load_after},
         "frames": frames, "elapsed_s": round(elapsed, 1), "frames_per_s": float(match.group(2)) if match else round(frames / elapsed, 3),
@@ -395,8 +396,8 @@ def run_mapping(bags: list[Path], db: Path, settings: Settings, gt: Trajectory, 
         "step_ms_by_loop_closure": {kind: _step_spread([s for s, m in zip(stored, mask.tolist()) if m])
                                     for kind, mask in (("accepted", with_loop), ("rejected", rejected),
                                                        ("other", ~with_loop & ~rejected))},
-        "time_medians_ms": {k: float(np.median([s[f"time_{k}_ms"] for s in stored])) for k in TIMING_KEYS},
-        "time_p95_ms": {k: float(np.percentile([s[f"time_{k}_ms"] for s in stored], 95)) for k in TIMING_KEYS},
+        "time_medians_ms": {k: spread["median"] for k, spread in steps.items()},
+        "time_p95_ms": {k: spread["p95"] for k, spread in steps.items()},
         "ptime_spikes": [{"frame": int(i) + 1, "process_time_ms": round(float(ptime[i]), 1),
                           **{k: stored[i][k] for k in STATS_KEPT if k in stored[i] and k != "process_time_ms"},
                           "loop_closure_type": rows[i]["loop_closure_type"]}

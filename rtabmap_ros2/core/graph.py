@@ -311,7 +311,7 @@ CONSENSUS_DISTANCE_M = 0.5
 CONSENSUS_ANGLE_RAD = np.deg2rad(10.0)
 
 
-def residuals(poses: dict[int, np.ndarray], table: "LinkTable") -> np.ndarray:
+def residuals(poses: dict[int, np.ndarray], table: LinkTable) -> np.ndarray:
     """(N, 4, 4) residuals of the links of ``table`` at ``poses``: identity where a link holds exactly."""
     stack = PoseStack(poses)
     rows, found = stack.rows(table.ends)

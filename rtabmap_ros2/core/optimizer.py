@@ -44,7 +44,7 @@ from typing import NamedTuple
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Link, LinkType, bridges, connected_components
+from rtabmap_ros2.core.graph import Link, bridges, connected_components
 from rtabmap_ros2.core.params import GraphParams
 from rtabmap_ros2.errors import OptimizationError
 
@@ -698,7 +698,8 @@ class IncrementalOptimizer:
         if self.planar:
             root_pose = transforms.project_planar(root_pose)
         align = root_pose @ transforms.inverse(stacked[keys.index(root_id)])
-        return OptimizationResult(dict(zip(keys, np.einsum("ij,njk->nik", align, stacked))), float("nan"), float("nan"), iterations, rejected,
+        poses = dict(zip(keys, np.einsum("ij,njk->nik", align, stacked)))
+        return OptimizationResult(poses, float("nan"), float("nan"), iterations, rejected,
                                   time.perf_counter() - start, switched_off)
 
     def _prior(self, node_id: int, pose: np.ndarray):
@@ -738,7 +739,7 @@ class IncrementalOptimizer:
         import gtsam
 
         threshold = self.params.robust_reject_scale
-        loops = [link for link in self._links.values() if link.type is not LinkType.NEIGHBOR]
+        loops = [link for link in self._links.values() if link.type.is_loop_closure]
         plain = _plain_factors(loops, self.planar)
         iterations = 0
         for _ in range(ROBUST_ROUNDS):

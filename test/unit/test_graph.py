@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import (Graph, Link, LinkTable, LinkType, agree, agree_many, component_labels, connected_components,
-                                     residuals)
+from rtabmap_ros2.core.graph import (Graph, Link, LinkTable, LinkType, agree, agree_many, component_labels,
+                                     connected_components, residuals)
 
 
 def _link(a: int, b: int) -> Link:
