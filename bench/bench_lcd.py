@@ -97,6 +97,7 @@ ABLATION = {
     # What the defaults add to RTAB-Map's detection, each taken out alone.
     "no roll normalisation": ("--set", "features.roll_normalization=false"),
     "GFTT/MinDistance 7 (RTAB-Map's)": ("--set", "features.gftt_min_distance_px=7"),
+    "no hypothesis hop": ("--set", "bayes.hypothesis_hops=0"),
     # Issue 32's additions (likelihood trim, evidence check, hypothesis refinement, view alignment,
     # repeated evidence discount, loop closure hop) lost on real images and were removed (issue 48):
     # their last rows are in docs/benchmarks.md. The values and the word search chosen then:
@@ -585,14 +586,24 @@ def table(results: list[dict]) -> list[str]:
     return lines
 
 
+def _signed(value) -> str:
+    """A difference with its sign, '-' when there is none (a set without loops has no recall)."""
+    return "-" if value is None else f"{value:+.3f}"
+
+
 def _fmt(value, width: int) -> str:
     return f"{'-':>{width}}" if value is None else f"{value:{width}.3f}"
 
 
 def _spread(runs: list[dict]) -> str:
-    """The range over ``runs`` of the figures the conformance compares."""
-    return ", ".join(f"{k} {min(r[k] for r in runs):.3g}-{max(r[k] for r in runs):.3g}"
-                     for k in ("precision", "recall", "merged", "vocabulary_size"))
+    """The range over ``runs`` of the figures the conformance compares (a figure a set does not have,
+    recall without a loop, is left out)."""
+    ranges = []
+    for k in ("precision", "recall", "merged", "vocabulary_size"):
+        values = [r[k] for r in runs if r[k] is not None]
+        if values:
+            ranges.append(f"{k} {min(values):.3g}-{max(values):.3g}")
+    return ", ".join(ranges)
 
 
 def _runs_per_set(option: str, values: list[str], parser: argparse.ArgumentParser) -> dict:
@@ -696,7 +707,7 @@ def main() -> int:
             against = f"the median of {len(res['reference_runs'])} reference runs" if "reference_runs" in res else "the reference"
             print(f"{res['config']} {res['set']}, {ours_side} against {against}: merges x{c['merges_ratio'] or 0:.2f}, "
                   f"vocabulary x{c['vocabulary_ratio'] or 0:.2f}, same decision {res['decision_agreement']:.3f}, "
-                  f"dP {c['precision_difference']:+.3f}, dR {c['recall_difference']:+.3f}: "
+                  f"dP {_signed(c['precision_difference'])}, dR {_signed(c['recall_difference'])}: "
                   f"{'within' if c['within_tolerances'] else 'OUTSIDE'} tolerances; "
                   f"first differences at images {res['first_differences']}")
             if "reference_runs" in res:

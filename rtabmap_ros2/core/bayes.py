@@ -89,8 +89,8 @@ class TransitionModel:
         whole graph, LTM links read from the database); ``kept``: which reached nodes a cached
         neighbourhood keeps (the ones in memory: the others are not hypotheses, and the
         neighbourhoods of a small-world graph would otherwise grow with LTM)."""
-        self._graph = graph
-        self._kept = kept
+        self.graph = graph
+        self.kept = kept
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         # RTAB-Map's neighbourhoods: a loop closure link is crossed without a hop.
         self._free = LOOP_CLOSURES
@@ -111,7 +111,7 @@ class TransitionModel:
         """
         for node in node_ids:
             self._cache.pop(node, None)
-            for other in self._graph.neighbors(node):
+            for other in self.graph.neighbors(node):
                 self._cache.pop(other, None)
 
     def forget(self, node_ids) -> None:
@@ -125,9 +125,9 @@ class TransitionModel:
         """(ids, unnormalised Gaussian weights) of the nodes whose transition weight is not negligible."""
         cached = self._cache.get(node_id)
         if cached is None:
-            hops = self._graph.hops_from(node_id, self._radius, free=self._free)
-            if self._kept is not None:
-                hops = {n: d for n, d in hops.items() if n in self._kept}
+            hops = self.graph.hops_from(node_id, self._radius, free=self._free)
+            if self.kept is not None:
+                hops = {n: d for n, d in hops.items() if n in self.kept}
             ids = np.fromiter(hops.keys(), dtype=np.int64, count=len(hops))
             dist = np.fromiter(hops.values(), dtype=np.int64, count=len(hops))
             cached = (ids, self._gaussian[dist])
@@ -143,9 +143,12 @@ class BayesFilter:
         self.params = params
         self.transitions = TransitionModel(params, graph, kept)
         self.posterior: dict[int, float] = {NEW_LOCATION: 1.0}
+        # The last frame's likelihood (see highest()).
+        self.observation: dict[int, float] = {}
 
     def reset(self) -> None:
         self.posterior = {NEW_LOCATION: 1.0}
+        self.observation = {}
 
     def predict(self, wm_ids: np.ndarray) -> np.ndarray:
         """Belief (Eq. 2, right part) over ``[NEW_LOCATION, *wm_ids]`` from the previous posterior.
@@ -216,6 +219,7 @@ class BayesFilter:
         post = post / total if total > _EPSILON else np.eye(1, len(post)).ravel()
         self.posterior = {NEW_LOCATION: float(post[0])}
         self.posterior.update(zip(wm_ids.tolist(), post[1:].tolist()))
+        self.observation = observation
         return self.posterior
 
     def highest(self) -> Hypothesis:
@@ -230,7 +234,23 @@ class BayesFilter:
             if loc != NEW_LOCATION and prob > best_p:
                 best_id, best_p = loc, prob
         p_new = self.posterior.get(NEW_LOCATION, 1.0)
+        if best_id and self.params.hypothesis_hops > 0:
+            best_id = self._best_observed_near(best_id)
         return Hypothesis(best_id, 1.0 - p_new if best_id else 0.0, p_new)
+
+    def _best_observed_near(self, peak: int) -> int:
+        """The hypothesis at most ``hypothesis_hops`` neighbour links from the posterior's ``peak``
+        (along its trajectory, through the nodes in memory) whose likelihood this frame is highest;
+        ``peak`` on ties. The value compared with T_loop does not change (it is 1 - p(S_t = -1))."""
+        observation = self.observation
+        best, best_like = peak, observation.get(peak, 1.0)
+        near = self.transitions.graph.hops_from(peak, self.params.hypothesis_hops, (LinkType.NEIGHBOR,),
+                                                allowed=self.transitions.kept)
+        for node in near:
+            like = observation.get(node, 1.0)
+            if like > best_like and node in self.posterior:
+                best, best_like = node, like
+        return best
 
     def accepted(self, hypothesis: Hypothesis, previous_value: float = 0.0) -> bool:
         """A loop closure when the hypothesis reaches T_loop and is not the only one in WM, and,
