@@ -30,6 +30,10 @@ simulator's seed 7. ``--reference-runs N`` (or ``SET=N``) runs it N times per se
 (``vocabulary.kdtree_seed`` 0 .. N-1); issue 32's tolerances then compare both sides' medians, and
 each reference run is held to them against the median of its other runs.
 
+Runs are kept under ``--data`` and reused: the reference's always (its binary does not change), ours
+while the options and the package's code and configuration files are the same (:func:`code_version`);
+``--rerun`` / ``--rerun-reference`` run them again anyway.
+
     python bench/bench_lcd.py                                   # every set, defaults + conformance
     python bench/bench_lcd.py --sets lcd ms:31 --configs conformance --per-image
     python bench/bench_lcd.py --ablation                        # every row of CONFIGS
@@ -43,6 +47,8 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
+import hashlib
 import json
 import os
 import subprocess
@@ -286,14 +292,16 @@ def run_reference(ds: DataSet, data: Path, rerun: bool, options: tuple[str, ...]
 
 
 def run_ours(ds: DataSet, label: str, options: tuple[str, ...], data: Path, rerun: bool, run: int = 1) -> Path:
-    """Our ``detect`` output folder for this data set, configuration and run (kept unless ``rerun``).
+    """Our ``detect`` output folder for this data set, configuration and run (kept unless ``rerun``, other
+    options or other code: :func:`code_version`).
     Run k > 1 seeds the kd-tree word search with k - 1 (``vocabulary.kdtree_seed``)."""
     if run > 1:
         options = (*options, "--set", f"vocabulary.kdtree_seed={run - 1}")
     suffix = f"_seed{run - 1}" if run > 1 else ""
     out = data / f"ours_{_slug(ds.name)}_{_count(ds)}_{_slug(label)}{suffix}"
     done_file = out / "DONE"
-    if rerun or not done_file.exists() or json.loads(done_file.read_text()).get("options") != list(options):
+    kept = json.loads(done_file.read_text()) if done_file.exists() else {}
+    if rerun or kept.get("options") != list(options) or kept.get("code") != code_version():
         t0 = time.perf_counter()
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))))
         command = [sys.executable, "-m", "rtabmap_ros2", "detect", str(ds.images), "--out", str(out),
@@ -301,9 +309,21 @@ def run_ours(ds: DataSet, label: str, options: tuple[str, ...], data: Path, reru
         done = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
         if done.returncode != 0:
             raise RuntimeError(f"{' '.join(command)} failed:\n{done.stderr[-3000:]}")
-        (out / "DONE").write_text(json.dumps({"options": list(options), "seconds": time.perf_counter() - t0}))
+        (out / "DONE").write_text(json.dumps({"options": list(options), "code": code_version(),
+                                              "seconds": time.perf_counter() - t0}))
         print(f"ours {label}{suffix} / {ds.name}: {time.perf_counter() - t0:.0f} s", flush=True)
     return out
+
+
+@functools.lru_cache(maxsize=None)
+def code_version() -> str:
+    """Hash of the package's code and configuration files: a kept run of ours is reused only when they
+    are what made it (a run kept from older code would otherwise stand in for the code measured)."""
+    digest = hashlib.sha1()
+    for path in sorted([*(REPO / "rtabmap_ros2").rglob("*.py"), *(REPO / "config").glob("*.yaml")]):
+        digest.update(str(path.relative_to(REPO)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
 
 
 def _count(ds: DataSet) -> int:
