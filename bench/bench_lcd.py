@@ -531,8 +531,10 @@ def per_image(ds: DataSet, ours_dir: Path, ref_dir: Path, path: Path) -> None:
                             + [v for pair in zip(mine, theirs) for v in pair])
 
 
+@functools.lru_cache(maxsize=4)
 def _gt_matrix(gt: Path) -> np.ndarray:
-    """The ground truth as a boolean image x image matrix (pixel 255: the two close a loop)."""
+    """The ground truth as a boolean image x image matrix (pixel 255: the two close a loop); read once
+    per set, not once per run (not to be modified: it is shared)."""
     import cv2
 
     return cv2.imread(str(gt), cv2.IMREAD_GRAYSCALE) == 255

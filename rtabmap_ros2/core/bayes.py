@@ -89,8 +89,8 @@ class TransitionModel:
         whole graph, LTM links read from the database); ``kept``: which reached nodes a cached
         neighbourhood keeps (the ones in memory: the others are not hypotheses, and the
         neighbourhoods of a small-world graph would otherwise grow with LTM)."""
-        self.graph = graph
-        self.kept = kept
+        self._graph = graph
+        self._kept = kept
         self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         # RTAB-Map's neighbourhoods: a loop closure link is crossed without a hop.
         self._free = LOOP_CLOSURES
@@ -111,7 +111,7 @@ class TransitionModel:
         """
         for node in node_ids:
             self._cache.pop(node, None)
-            for other in self.graph.neighbors(node):
+            for other in self._graph.neighbors(node):
                 self._cache.pop(other, None)
 
     def forget(self, node_ids) -> None:
@@ -125,9 +125,9 @@ class TransitionModel:
         """(ids, unnormalised Gaussian weights) of the nodes whose transition weight is not negligible."""
         cached = self._cache.get(node_id)
         if cached is None:
-            hops = self.graph.hops_from(node_id, self._radius, free=self._free)
-            if self.kept is not None:
-                hops = {n: d for n, d in hops.items() if n in self.kept}
+            hops = self._graph.hops_from(node_id, self._radius, free=self._free)
+            if self._kept is not None:
+                hops = {n: d for n, d in hops.items() if n in self._kept}
             ids = np.fromiter(hops.keys(), dtype=np.int64, count=len(hops))
             dist = np.fromiter(hops.values(), dtype=np.int64, count=len(hops))
             cached = (ids, self._gaussian[dist])
@@ -141,6 +141,8 @@ class BayesFilter:
     def __init__(self, params: BayesParams, graph: Graph, kept: Optional[Container[int]] = None) -> None:
         """``kept``: the nodes in memory (see :class:`TransitionModel`)."""
         self.params = params
+        self._graph = graph
+        self._kept = kept
         self.transitions = TransitionModel(params, graph, kept)
         self.posterior: dict[int, float] = {NEW_LOCATION: 1.0}
         # The last frame's likelihood (see highest()).
@@ -244,8 +246,7 @@ class BayesFilter:
         ``peak`` on ties. The value compared with T_loop does not change (it is 1 - p(S_t = -1))."""
         observation = self.observation
         best, best_like = peak, observation.get(peak, 1.0)
-        near = self.transitions.graph.hops_from(peak, self.params.hypothesis_hops, (LinkType.NEIGHBOR,),
-                                                allowed=self.transitions.kept)
+        near = self._graph.hops_from(peak, self.params.hypothesis_hops, (LinkType.NEIGHBOR,), allowed=self._kept)
         for node in near:
             like = observation.get(node, 1.0)
             if like > best_like and node in self.posterior:
