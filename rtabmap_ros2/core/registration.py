@@ -36,6 +36,7 @@ import scipy.linalg
 from scipy.spatial import cKDTree
 
 from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.compiled import jit
 from rtabmap_ros2.core.grid import voxel_filter
 from rtabmap_ros2.core.nearest import NearestWithin
 from rtabmap_ros2.core.params import RegistrationParams
@@ -175,39 +176,6 @@ def words_3d(keypoints: np.ndarray, depth_m: np.ndarray, camera: CameraModel) ->
     return out
 
 
-def kabsch(from_points: np.ndarray, to_points: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Least-squares rigid transform ``T`` (4x4) with ``from_points ≈ T @ to_points``.
-
-    Args:
-        from_points: (N,3) or batched (H,N,3) points (m).
-        to_points: same shape as ``from_points``.
-        weights: optional (N,) or (H,N) non-negative weights.
-
-    Returns:
-        (4,4) or (H,4,4) transforms.
-    """
-    P = np.asarray(from_points, dtype=np.float64)
-    Q = np.asarray(to_points, dtype=np.float64)
-    single = P.ndim == 2
-    if single:
-        P, Q = P[None], Q[None]
-        weights = None if weights is None else np.asarray(weights, dtype=np.float64)[None]
-    w = np.ones(P.shape[:2]) if weights is None else weights
-    w = w / w.sum(axis=1, keepdims=True)
-    cp = np.einsum("hn,hnd->hd", w, P)
-    cq = np.einsum("hn,hnd->hd", w, Q)
-    H = np.einsum("hn,hni,hnj->hij", w, Q - cq[:, None], P - cp[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("hij,hjk->hik", Vt.transpose(0, 2, 1), U.transpose(0, 2, 1))))
-    D = np.tile(np.eye(3), (len(P), 1, 1))
-    D[:, 2, 2] = d
-    R = Vt.transpose(0, 2, 1) @ D @ U.transpose(0, 2, 1)
-    T = np.tile(np.eye(4), (len(P), 1, 1))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = cp - np.einsum("hij,hj->hi", R, cq)
-    return T[0] if single else T
-
-
 def feature_pairs(from_sig: Signature, to_sig: Signature,
                   descriptors: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
     """The pairs a loop closure transform is estimated from: :func:`matched_pairs` with the two
@@ -336,7 +304,7 @@ def correspondences(from_sig: Signature, to_sig: Signature,
 
 def ransac_rigid(from_points: np.ndarray, to_points: np.ndarray, inlier_distance: float, iterations: int,
                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """RANSAC + Kabsch on 3D-3D correspondences, all hypotheses scored at once.
+    """RANSAC + Kabsch on 3D-3D correspondences, then an iteratively reweighted refit.
 
     Args:
         from_points, to_points: (N,3) corresponding points (m), N >= 3.
@@ -346,39 +314,132 @@ def ransac_rigid(from_points: np.ndarray, to_points: np.ndarray, inlier_distance
 
     Returns:
         ``(T_from_to 4x4, inlier mask (N,) bool)`` after refitting on the inliers.
+
+    The hypotheses, their scores and the refit run compiled (:func:`_ransac_compiled`): as numpy
+    arrays over all hypotheses at once they cost ~8 ms of a loop closure's ~15 ms of verification
+    (issue 50), mostly in the refit's ~15 small Kabsch fits, each a dozen numpy calls.
     """
     n = len(from_points)
     samples = _distinct_triples(n, iterations, rng)
-    q = to_points[samples]
-    area = 0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1)
-    samples = samples[area > MIN_SAMPLE_AREA]
-    if len(samples) == 0:
+    T = np.eye(4)
+    mask = np.zeros(n, dtype=np.bool_)
+    # Refit: Cauchy weights of scale IRLS_SCALE_RATIO x inlier_distance. A plain least-squares refit on
+    # every point within inlier_distance is pulled by the noisiest far words (depth noise grows with
+    # range): measured on TUM fr1_xyz it left 2-11 cm errors, the weighted refit 0.5-1 cm.
+    found = _ransac_compiled(np.ascontiguousarray(from_points, dtype=np.float64),
+                             np.ascontiguousarray(to_points, dtype=np.float64), samples, float(inlier_distance),
+                             MIN_SAMPLE_AREA, IRLS_SCALE_RATIO * inlier_distance, IRLS_ITERATIONS, IRLS_CONVERGENCE,
+                             T, mask)
+    if not found:
         raise RegistrationError(
             f"RANSAC: all {iterations} samples of the {n} correspondences are degenerate (collinear or "
             "coincident words): the scene has no 3D structure to register")
-    Ts = kabsch(from_points[samples], to_points[samples])
-    # Score every hypothesis against every correspondence: (H,3,N), batched matmul (BLAS).
-    moved = Ts[:, :3, :3] @ to_points.T + Ts[:, :3, 3:]
-    inliers = np.sum((moved - from_points.T[None]) ** 2, axis=1) < inlier_distance ** 2
-    best = int(np.argmax(inliers.sum(axis=1)))
-    T, mask = Ts[best], inliers[best]
-    # Refit on the inliers: iteratively reweighted Kabsch (Cauchy weights). A plain least-squares
-    # refit on every point within inlier_distance is pulled by the noisiest far words (depth noise
-    # grows with range): measured on TUM fr1_xyz it left 2-11 cm errors, the weighted refit 0.5-1 cm.
-    scale = IRLS_SCALE_RATIO * inlier_distance
-    for _ in range(IRLS_ITERATIONS):
-        r = _residuals(T, from_points, to_points)
-        gate = r < inlier_distance
-        if gate.sum() < 3:
-            break
-        w = 1.0 / (1.0 + (r[gate] / scale) ** 2)
-        T_new = kabsch(from_points[gate], to_points[gate], w)
-        step = transforms.inverse(T) @ T_new
-        T = T_new
-        if np.linalg.norm(step[:3, 3]) < IRLS_CONVERGENCE and transforms.rotation_angle(step) < IRLS_CONVERGENCE:
-            break
-    mask = _residuals(T, from_points, to_points) < inlier_distance
     return T, mask
+
+
+@jit()
+def _fit_rigid(from_points, to_points, index, weights, T):
+    """Weighted least-squares rigid transform (Kabsch) with ``from ≈ T @ to`` over the rows
+    ``index`` (weights (len(index),)), written into ``T`` (4x4)."""
+    total = 0.0
+    cp = np.zeros(3)
+    cq = np.zeros(3)
+    for k in range(index.shape[0]):
+        total += weights[k]
+    for k in range(index.shape[0]):
+        w = weights[k] / total
+        for d in range(3):
+            cp[d] += w * from_points[index[k], d]
+            cq[d] += w * to_points[index[k], d]
+    H = np.zeros((3, 3))
+    for k in range(index.shape[0]):
+        w = weights[k] / total
+        for i in range(3):
+            qi = to_points[index[k], i] - cq[i]
+            for j in range(3):
+                H[i, j] += w * qi * (from_points[index[k], j] - cp[j])
+    U, _, Vt = np.linalg.svd(H)
+    V = Vt.T.copy()
+    R = V @ U.T
+    if np.linalg.det(R) < 0.0:  # a reflection: flip the axis of the smallest singular value
+        V[:, 2] = -V[:, 2]
+        R = V @ U.T
+    T[:, :] = 0.0
+    T[:3, :3] = R
+    for i in range(3):
+        T[i, 3] = cp[i] - (R[i, 0] * cq[0] + R[i, 1] * cq[1] + R[i, 2] * cq[2])
+    T[3, 3] = 1.0
+
+
+@jit()
+def _inliers(T, from_points, to_points, inlier_distance, out):
+    """Marks in ``out`` the pairs with ``|from - T @ to| < inlier_distance``; returns their count."""
+    count = 0
+    bound = inlier_distance * inlier_distance
+    for n in range(from_points.shape[0]):
+        d2 = 0.0
+        for i in range(3):
+            e = (T[i, 0] * to_points[n, 0] + T[i, 1] * to_points[n, 1] + T[i, 2] * to_points[n, 2] + T[i, 3]
+                 - from_points[n, i])
+            d2 += e * e
+        out[n] = d2 < bound
+        count += out[n]
+    return count
+
+
+@jit()
+def _ransac_compiled(from_points, to_points, samples, inlier_distance, min_area, scale, refits, convergence,
+                     T, mask):
+    """:func:`ransac_rigid`'s work: the best-scoring hypothesis of the non-degenerate ``samples``
+    (the first of equal scores) refitted into ``T``, its final inliers into ``mask``; False when
+    every sample is degenerate."""
+    n = from_points.shape[0]
+    ones = np.ones(3)
+    trial = np.zeros((4, 4))
+    inliers = np.zeros(n, dtype=np.bool_)
+    best = -1
+    for h in range(samples.shape[0]):
+        a, b, c = to_points[samples[h, 0]], to_points[samples[h, 1]], to_points[samples[h, 2]]
+        u, v = b - a, c - a
+        cross = np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
+        if 0.5 * np.sqrt(np.sum(cross * cross)) <= min_area:
+            continue
+        _fit_rigid(from_points, to_points, samples[h], ones, trial)
+        count = _inliers(trial, from_points, to_points, inlier_distance, inliers)
+        if count > best:
+            best = count
+            T[:, :] = trial
+    if best < 0:
+        return False
+    residual = np.empty(n)
+    for _ in range(refits):
+        for k in range(n):
+            d2 = 0.0
+            for i in range(3):
+                e = (T[i, 0] * to_points[k, 0] + T[i, 1] * to_points[k, 1] + T[i, 2] * to_points[k, 2] + T[i, 3]
+                     - from_points[k, i])
+                d2 += e * e
+            residual[k] = np.sqrt(d2)
+        gate = np.nonzero(residual < inlier_distance)[0]
+        if gate.shape[0] < 3:
+            break
+        weights = 1.0 / (1.0 + (residual[gate] / scale) ** 2)
+        _fit_rigid(from_points, to_points, gate, weights, trial)
+        # The step from T to the refit: R^T R' (its angle) and R^T (t' - t).
+        trace = 0.0
+        moved_sq = 0.0
+        for i in range(3):
+            t_i = 0.0
+            for j in range(3):
+                trace += T[j, i] * trial[j, i]
+                t_i += T[j, i] * (trial[j, 3] - T[j, 3])
+            moved_sq += t_i * t_i
+        angle = np.arccos(min(1.0, max(-1.0, (trace - 1.0) / 2.0)))
+        T[:, :] = trial
+        if np.sqrt(moved_sq) < convergence and angle < convergence:
+            break
+    _inliers(T, from_points, to_points, inlier_distance, mask)
+    return True
 
 
 def _distinct_triples(n: int, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -1070,5 +1131,5 @@ def refine_neighbor_link(scan_map: np.ndarray, new_scan: LaserScan, T_odom: np.n
     return T, info
 
 
-__all__ = ["Registration", "assemble_scan_map", "correspondences", "icp_2d", "kabsch", "pnp_ransac", "ransac_rigid",
+__all__ = ["Registration", "assemble_scan_map", "correspondences", "icp_2d", "pnp_ransac", "ransac_rigid",
            "refine_neighbor_link", "register", "register_pnp", "uses_pnp", "words_3d"]

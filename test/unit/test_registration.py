@@ -15,7 +15,8 @@ from rgbd_pairs import TUM_DEPTH_SCALE, load_tum, product_signatures
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.features import FeatureExtractor
 from rtabmap_ros2.core.params import Params, RegistrationParams, default_config_path
-from rtabmap_ros2.core.registration import epipolar_check, icp_2d, matched_pairs, register, word_pairs, words_3d
+from rtabmap_ros2.core.registration import (epipolar_check, icp_2d, matched_pairs, ransac_rigid, register, word_pairs,
+                                            words_3d)
 from rtabmap_ros2.core.sensor import CameraModel
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.vocabulary import Vocabulary
@@ -114,6 +115,21 @@ def test_too_few_inliers_raises(rng):
     few = Signature(3, 1, 0, ids[:5], np.zeros((5, 2), np.float32), sa.points3d[:5])
     with pytest.raises(RegistrationError, match="min_inliers"):
         register(sa, few, RegistrationParams(min_inliers=10))
+
+
+def test_ransac_keeps_the_true_pairs_among_outliers_and_refuses_collinear_words(rng):
+    to_points = rng.uniform(-3, 3, (120, 3))
+    T_true = transforms.from_xy_yaw(0.7, -0.3, 0.4) @ transforms.from_xyz_quat_xyzw([0, 0, 0.1], [0.05, -0.03, 0, 1])
+    from_points = to_points @ T_true[:3, :3].T + T_true[:3, 3] + rng.normal(0, 0.005, (120, 3))
+    wrong = rng.choice(120, 40, replace=False)
+    from_points[wrong] = rng.uniform(-3, 3, (40, 3))  # a third of the pairs matched the wrong word
+    T, inliers = ransac_rigid(from_points, to_points, 0.1, 500, np.random.default_rng(0))
+    assert np.abs(T[:3, 3] - T_true[:3, 3]).max() < 0.01
+    assert transforms.rotation_angle(transforms.inverse(T) @ T_true) < np.radians(0.5)
+    assert not inliers[wrong].any() and inliers.sum() == 80
+    on_a_line = np.outer(np.linspace(0, 2, 30), [1.0, 0.5, 0.2])
+    with pytest.raises(RegistrationError, match="degenerate"):
+        ransac_rigid(on_a_line, on_a_line, 0.1, 100, np.random.default_rng(0))
 
 
 def read_carmen(path):
