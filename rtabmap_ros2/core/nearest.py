@@ -30,7 +30,7 @@ def _cell_range(keys, col, row_lo, row_hi, max_row):
 
 
 @jit()
-def _nearest(points, order, keys, origin, cell, max_col, max_row, queries, bound_sq, out):
+def nearest_in_cells(points, order, keys, origin, cell, max_col, max_row, queries, bound_sq, out):
     """For each query, the index of the point of smallest squared distance below ``bound_sq``
     (-1: none); candidates from the cells ``(col, row)`` around it, sorted by ``col * (max_row + 1) + row``."""
     for i in range(queries.shape[0]):
@@ -109,9 +109,13 @@ class NearestWithin:
         whose ``N`` is -1 here)."""
         queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 2)
         out = np.empty(len(queries), np.int64)
-        _nearest(self.points, self.order, self.keys, self.origin, self.cell, self.max_col, self.max_row,
-                 queries, self.bound_sq, out)
+        nearest_in_cells(*self.cells_of_points(), queries, self.bound_sq, out)
         return out
+
+    def cells_of_points(self) -> tuple:
+        """The arguments of :func:`nearest_in_cells` before its queries: the points and their cells,
+        for compiled callers (registration's ICP)."""
+        return self.points, self.order, self.keys, self.origin, self.cell, self.max_col, self.max_row
 
     def k_nearest(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Each reference point's ``k`` nearest reference points (itself first), nearest first, and
@@ -123,9 +127,3 @@ class NearestWithin:
         _k_nearest(self.points, self.order, self.keys, self.cells, self.max_col, self.max_row, index, distance)
         return index, distance
 
-
-def warm_up() -> None:
-    """Compile the searches (or load them from numba's cache) here rather than in the first ICP."""
-    cells = NearestWithin(np.zeros((2, 2)), 1.0)
-    cells.query(np.zeros((1, 2)))
-    cells.k_nearest(2)

@@ -614,6 +614,7 @@ class IncrementalOptimizer:
         self._isam = None
         self._nodes: set[int] = set()
         self._links: dict[tuple[int, int], Link] = {}  # every link held, active or rejected
+        self._loops: dict[tuple[int, int], Link] = {}  # the loop closures of _links (the robust rounds')
         self._factor: dict[tuple[int, int], int] = {}  # active link key -> iSAM2 factor index
         self._values = None  # the current estimate (gtsam Values)
 
@@ -638,6 +639,7 @@ class IncrementalOptimizer:
         self._isam = gtsam.ISAM2(isam_params)
         self._nodes = set(poses)
         self._links = {link.key(): link for link in used}
+        self._loops = {key: link for key, link in self._links.items() if link.type.is_loop_closure}
         self._factor = {}
         values = gtsam.Values()
         for node_id, pose in zip(poses, _gtsam_poses(np.stack(list(poses.values())), self.planar)):
@@ -655,15 +657,14 @@ class IncrementalOptimizer:
     def solve(self, component: set[int], links: list[Link], root_id: int, root_pose: np.ndarray,
               guess: dict[int, np.ndarray]) -> OptimizationResult | None:
         """The optimised poses of ``component`` (every node in ``guess``, root at ``root_pose``) with
-        ``links`` among them, continuing from the last solution; None when that is not possible."""
+        ``links`` among them (both ends in ``component``), continuing from the last solution; None
+        when that is not possible."""
         import gtsam
 
         start = time.perf_counter()
         if self._isam is None or not self._nodes <= component:
             return None
-        used = [link for link in links if link.from_id in component and link.to_id in component
-                and link.from_id != link.to_id]
-        by_key = {link.key(): link for link in used}
+        by_key = {link.key(): link for link in links if link.from_id != link.to_id}
         gone = [key for key, link in self._links.items() if by_key.get(key) is not link]
         if any(not self._links[key].type.is_loop_closure for key in gone):
             return None  # a neighbour link changed or left: not what a frame does
@@ -680,6 +681,7 @@ class IncrementalOptimizer:
         remove = [self._factor.pop(key) for key in gone if key in self._factor]
         for key in gone:
             del self._links[key]
+            self._loops.pop(key, None)
         rejected_keys = {key for key in self._links if key not in self._factor}
         fresh = [link for key, link in by_key.items() if key not in self._links]
         graph = gtsam.NonlinearFactorGraph()
@@ -688,6 +690,7 @@ class IncrementalOptimizer:
         self._update(graph, values, remove, fresh)
         self._nodes |= new_nodes
         self._links.update((link.key(), link) for link in fresh)
+        self._loops.update((link.key(), link) for link in fresh if link.type.is_loop_closure)
         rejected = [self._links[key] for key in rejected_keys]
         iterations = self._converge()
         switched_off: list[Link] = []
@@ -739,7 +742,7 @@ class IncrementalOptimizer:
         import gtsam
 
         threshold = self.params.robust_reject_scale
-        loops = [link for link in self._links.values() if link.type.is_loop_closure]
+        loops = list(self._loops.values())
         plain = _plain_factors(loops, self.planar)
         iterations = 0
         for _ in range(ROBUST_ROUNDS):
@@ -751,7 +754,8 @@ class IncrementalOptimizer:
             if not bad and not good_again:
                 break
             rejected = [link for link in rejected if scales[link.key()] < threshold]
-            kept = [link for key, link in self._links.items() if key not in {r.key() for r in rejected}]
+            out = {link.key() for link in rejected}
+            kept = [link for key, link in self._links.items() if key not in out]
             dropped = []
             for link in bad:  # worst first; a bridge stays (nothing in the graph contradicts it)
                 trial = [k for k in kept if k is not link]

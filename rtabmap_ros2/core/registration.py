@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.compiled import jit
 from rtabmap_ros2.core.grid import voxel_filter
-from rtabmap_ros2.core.nearest import NearestWithin
+from rtabmap_ros2.core.nearest import NearestWithin, nearest_in_cells
 from rtabmap_ros2.core.params import RegistrationParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 from rtabmap_ros2.core.signature import Signature
@@ -1010,37 +1010,26 @@ def _icp(source_xy: np.ndarray, target_xy: np.ndarray, T_init: np.ndarray, prior
     normals = _line_normals(tgt)
     has_normal = np.isfinite(normals).all(axis=1)
     nearest = NearestWithin(tgt, max_correspondence_distance)
-
-    def match(x: float, y: float, yaw: float):
-        c, s = np.cos(yaw), np.sin(yaw)
-        moved = src @ np.array([[c, s], [-s, c]]) + (x, y)
-        idx = nearest.query(moved)
-        ok = idx >= 0
-        idx_ok = idx[ok]
-        ok_normal = has_normal[idx_ok]
-        return moved[ok][ok_normal], idx_ok[ok_normal], int(ok.sum())
+    grid = nearest.cells_of_points()
+    gate_sq = nearest.bound_sq
 
     def linearise(state: np.ndarray):
-        moved, idx, n_matched = match(*state)
-        n = normals[idx]
-        r = np.sum(n * (moved - tgt[idx]), axis=1)
-        # d(moved)/d(yaw) = perpendicular of (moved - t).
-        rel = moved - state[:2]
-        J = np.column_stack([n[:, 0], n[:, 1], n[:, 0] * -rel[:, 1] + n[:, 1] * rel[:, 0]])
-        # Robust weights (Cauchy) so wrong correspondences inside the gate do not bias the fit.
-        w = 1.0 / (1.0 + (r / ICP_ROBUST_SCALE) ** 2)
-        return J, r, w, n_matched
+        """Gauss-Newton system of the point-to-line residuals at ``state`` (Cauchy weights, so wrong
+        correspondences inside the gate do not bias the fit): (H, g, sum w r^2, sum w, sum r^2,
+        residuals used, source points matched)."""
+        H, g, sums = np.zeros((3, 3)), np.zeros(3), np.zeros(3)
+        used, n_matched = _icp_system(src, tgt, normals, has_normal, *grid, gate_sq, state[0], state[1], state[2],
+                                      ICP_ROBUST_SCALE, H, g, sums)
+        return H, g, sums[0], sums[1], sums[2], used, n_matched
 
     for _ in range(iterations):
-        J, r, w, _ = linearise(state)
-        if len(r) < ICP_MIN_CORRESPONDENCES:
+        H, g, weighted_sq, weight, _, used, _ = linearise(state)
+        if used < ICP_MIN_CORRESPONDENCES:
             break
-        if prior is None:
-            H, g = J.T @ (w[:, None] * J), J.T @ (w * r)
-        else:
-            scale = 1.0 / (ICP_DEPENDENCE * max(float(np.sum(w * r * r) / w.sum()), ICP_MIN_SIGMA ** 2))
-            H = scale * (J.T @ (w[:, None] * J)) + P
-            g = scale * (J.T @ (w * r)) + P @ (state - x0)
+        if prior is not None:
+            scale = 1.0 / (ICP_DEPENDENCE * max(weighted_sq / weight, ICP_MIN_SIGMA ** 2))
+            H = scale * H + P
+            g = scale * g + P @ (state - x0)
         try:
             delta = np.linalg.solve(H, -g)
         except np.linalg.LinAlgError:
@@ -1048,13 +1037,55 @@ def _icp(source_xy: np.ndarray, target_xy: np.ndarray, T_init: np.ndarray, prior
         state = state + delta
         if np.hypot(delta[0], delta[1]) < ICP_CONVERGENCE_TRANSLATION and abs(delta[2]) < ICP_CONVERGENCE_ROTATION:
             break
-    J, r, w, n_matched = linearise(state)
+    H, _, _, _, squares, used, n_matched = linearise(state)
     overlap = n_matched / len(src)
-    rmse = float(np.sqrt(np.mean(r ** 2))) if len(r) else float("inf")
+    rmse = float(np.sqrt(squares / used)) if used else float("inf")
     information = np.zeros((3, 3))
-    if len(r) >= ICP_MIN_CORRESPONDENCES:
-        information = (J.T @ (w[:, None] * J)) / ICP_DEPENDENCE / max(rmse, ICP_MIN_SIGMA) ** 2
+    if used >= ICP_MIN_CORRESPONDENCES:
+        information = H / ICP_DEPENDENCE / max(rmse, ICP_MIN_SIGMA) ** 2
     return _IcpFit(transforms.from_xy_yaw(*state), overlap, rmse, information)
+
+
+@jit()
+def _icp_system(src, tgt, normals, has_normal, points, order, keys, origin, cell, max_col, max_row, gate_sq,
+                x, y, yaw, robust_scale, H, g, sums):
+    """One ICP linearisation, compiled (issue 50: a dozen numpy calls an iteration were most of an
+    ICP's time): each source point moved by (x, y, yaw), its nearest target point within the gate
+    (:func:`nearest_in_cells`), and for those with a line normal the residual ``r = n . (moved -
+    target)``, its Jacobian ``J = (n_x, n_y, n x (moved - t))`` and Cauchy weight ``w``, summed into
+    ``H += w J J^T``, ``g += w J r`` and ``sums += (w r^2, w, r^2)``. Returns (residuals used,
+    source points with a target point within the gate)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    moved = np.empty((src.shape[0], 2))
+    for i in range(src.shape[0]):
+        moved[i, 0] = src[i, 0] * c - src[i, 1] * s + x
+        moved[i, 1] = src[i, 0] * s + src[i, 1] * c + y
+    index = np.empty(src.shape[0], np.int64)
+    nearest_in_cells(points, order, keys, origin, cell, max_col, max_row, moved, gate_sq, index)
+    used = 0
+    matched = 0
+    J = np.empty(3)
+    for i in range(src.shape[0]):
+        j = index[i]
+        if j < 0:
+            continue
+        matched += 1
+        if not has_normal[j]:
+            continue
+        nx, ny = normals[j, 0], normals[j, 1]
+        r = nx * (moved[i, 0] - tgt[j, 0]) + ny * (moved[i, 1] - tgt[j, 1])
+        # d(moved)/d(yaw) = perpendicular of (moved - t).
+        J[0], J[1], J[2] = nx, ny, -nx * (moved[i, 1] - y) + ny * (moved[i, 0] - x)
+        w = 1.0 / (1.0 + (r / robust_scale) ** 2)
+        for a in range(3):
+            g[a] += w * J[a] * r
+            for b in range(3):
+                H[a, b] += w * J[a] * J[b]
+        sums[0] += w * r * r
+        sums[1] += w
+        sums[2] += r * r
+        used += 1
+    return used, matched
 
 
 def assemble_scan_map(scans: list[tuple[np.ndarray, LaserScan]], voxel_size: float) -> np.ndarray:
@@ -1131,5 +1162,15 @@ def refine_neighbor_link(scan_map: np.ndarray, new_scan: LaserScan, T_odom: np.n
     return T, info
 
 
+
+def warm_up() -> None:
+    """Compile the RANSAC and the ICP (or load them from numba's cache) here rather than in a frame."""
+    angles = np.linspace(0.0, 2.0 * np.pi, 60, endpoint=False)
+    ring = np.column_stack([2.0 * np.cos(angles), 2.0 * np.sin(angles)])
+    _icp(ring, ring, np.eye(4), None, 0.3, 2)
+    points = np.column_stack([ring, angles])
+    ransac_rigid(points, points, 0.1, 10, np.random.default_rng(DEFAULT_SEED))
+
+
 __all__ = ["Registration", "assemble_scan_map", "correspondences", "icp_2d", "pnp_ransac", "ransac_rigid",
-           "refine_neighbor_link", "register", "register_pnp", "uses_pnp", "words_3d"]
+           "refine_neighbor_link", "register", "register_pnp", "uses_pnp", "warm_up", "words_3d"]

@@ -29,7 +29,7 @@ from typing import Optional
 
 import numpy as np
 
-from rtabmap_ros2.core import nearest, transforms
+from rtabmap_ros2.core import registration, transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
@@ -70,7 +70,7 @@ class Rtabmap:
 
     def _open(self) -> None:
         load_backend()
-        nearest.warm_up()  # ICP's correspondence search, compiled or loaded here rather than in a frame
+        registration.warm_up()  # RANSAC and ICP compiled or loaded here rather than in a frame
         self.db = Database(self.database_path)
         self.db.set_parameters(self.params.to_dict())
         self.memory = Memory(self.params, self.db, self.extractor.binary)
