@@ -307,7 +307,7 @@ def ransac_rigid(from_points: np.ndarray, to_points: np.ndarray, inlier_distance
     """RANSAC + Kabsch on 3D-3D correspondences, then an iteratively reweighted refit.
 
     Args:
-        from_points, to_points: (N,3) corresponding points (m), N >= 3.
+        from_points, to_points: (N,3) corresponding points (m), finite, N >= 3.
         inlier_distance: a correspondence is an inlier when ``|from - T @ to| < inlier_distance`` (m).
         iterations: number of 3-point hypotheses.
         rng: random generator for the samples.
