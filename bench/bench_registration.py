@@ -56,11 +56,12 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 from scipy.spatial import cKDTree
 
-from rtabmap_ros2.core import registration, transforms
+from rtabmap_ros2.core import icp, registration, transforms
 from rtabmap_ros2.core.features import FeatureExtractor
 from rtabmap_ros2.core.graph import Link, LinkType
+from rtabmap_ros2.core.icp import icp_2d
 from rtabmap_ros2.core.params import Params, RegistrationParams, default_config_path
-from rtabmap_ros2.core.registration import correspondences, icp_2d, register, words_3d
+from rtabmap_ros2.core.registration import correspondences, register, words_3d
 from rtabmap_ros2.core.rtabmap import Rtabmap
 from rtabmap_ros2.core.sensor import CameraModel
 from rtabmap_ros2.core.signature import Signature
@@ -428,7 +429,7 @@ def icp_accuracy(stride: int) -> dict:
             "p90_translation_error_cm": 100 * float(np.percentile(errs[:, 0], 90)),
             "p90_rotation_error_deg": float(np.percentile(errs[:, 1], 90)),
             "median_overlap": float(np.median(overlaps)), "median_ms": float(np.median(times)),
-            "normal_neighbors": registration.ICP_NORMAL_NEIGHBORS, "robust_scale_m": registration.ICP_ROBUST_SCALE}
+            "normal_neighbors": icp.ICP_NORMAL_NEIGHBORS, "robust_scale_m": icp.ICP_ROBUST_SCALE}
 
 
 def inlier_counts() -> list[dict]:

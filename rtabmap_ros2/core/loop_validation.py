@@ -37,7 +37,8 @@ from rtabmap_ros2.core.graph import (Link, LinkTable, LinkType, PoseStack, agree
 from rtabmap_ros2.core.grid import scan_conflict
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.params import Params
-from rtabmap_ros2.core.registration import assemble_scan_map, epipolar_check, icp_2d, register
+from rtabmap_ros2.core.icp import icp_2d
+from rtabmap_ros2.core.registration import assemble_scan_map, epipolar_check, register
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.statistics import Statistics
 

@@ -15,7 +15,8 @@ from rgbd_pairs import TUM_DEPTH_SCALE, load_tum, product_signatures
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.features import FeatureExtractor
 from rtabmap_ros2.core.params import Params, RegistrationParams, default_config_path
-from rtabmap_ros2.core.registration import (epipolar_check, icp_2d, matched_pairs, ransac_rigid, register, word_pairs,
+from rtabmap_ros2.core.icp import icp_2d
+from rtabmap_ros2.core.registration import (epipolar_check, matched_pairs, ransac_rigid, register, word_pairs,
                                             words_3d)
 from rtabmap_ros2.core.sensor import CameraModel
 from rtabmap_ros2.core.signature import Signature
