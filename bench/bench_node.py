@@ -104,9 +104,9 @@ def _node_in_process(tmp: str, parameters: dict, extra_nodes=lambda ctx: []):
     import threading
 
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
     from rclpy.parameter import Parameter
 
+    from rtabmap_ros2.ros.executor import NodeExecutor
     from rtabmap_ros2.ros.node import RtabmapNode
 
     domain = random.randint(150, 230)
@@ -118,7 +118,7 @@ def _node_in_process(tmp: str, parameters: dict, extra_nodes=lambda ctx: []):
                  **parameters}
     node = RtabmapNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
     others = extra_nodes(ctx)
-    executor = MultiThreadedExecutor(num_threads=2 + len(others), context=ctx)
+    executor = NodeExecutor(num_threads=2 + len(others), context=ctx)
     for n in (node, *others):
         executor.add_node(n)
     thread = threading.Thread(target=executor.spin, daemon=True)

@@ -98,7 +98,7 @@ from nav_msgs.msg import Odometry, Path as PathMsg
 from nav_msgs.srv import GetMap
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, LaserScan
@@ -113,6 +113,7 @@ from rtabmap_ros2.io.bag import register_to_rgb
 from rtabmap_ros2.ros import conversions as conv
 from rtabmap_ros2.ros.frames import CAMERA, LASER, MapOdomBroadcaster, SensorMounts, import_tf2
 from rtabmap_ros2.ros.dropped import DroppedInputs
+from rtabmap_ros2.ros.executor import NodeExecutor
 from rtabmap_ros2.ros.frame_queue import FrameQueue, QueuedFrame
 from rtabmap_ros2.ros.frame_times import CALLBACKS, FrameTimer, FrameTimes
 from rtabmap_ros2.ros.map_publisher import MapPublisher, Outputs, Published
@@ -811,7 +812,7 @@ class RtabmapNode(Node):
         super().destroy_node()
 
 
-def _spin(executor: MultiThreadedExecutor, context) -> None:
+def _spin(executor: NodeExecutor, context) -> None:
     """``executor.spin()``, ended by a shutdown from another thread (the worker's unrecoverable error)
     as ExternalShutdownException wherever it lands: mid-wait, rclpy raises RCLError ("the given context
     is not valid") instead, which would end the process with a traceback and status 1 instead of
@@ -833,7 +834,7 @@ def main(args: Optional[list[str]] = None) -> None:
     try:
         node = RtabmapNode()
         # Sensors, services, and tf2's listener (served while a sensor callback waits for a transform).
-        executor = MultiThreadedExecutor(num_threads=3)
+        executor = NodeExecutor(num_threads=3)
         executor.add_node(node)
         _spin(executor, node.context)
     except KeyboardInterrupt:

@@ -12,10 +12,10 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from rtabmap_ros2.ros.executor import NodeExecutor
 from rtabmap_ros2.ros.node import RtabmapNode
 from rtabmap_ros2.ros.play import play_bag
 
@@ -36,7 +36,7 @@ def play_into_node(context, bag: Path, params: dict[str, Any], seconds: Optional
     destroy the node (its database is closed). Returns the node and what ``before_destroy`` returned."""
     node = RtabmapNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
     player = Node("player", context=context)
-    executor = MultiThreadedExecutor(num_threads=3, context=context)
+    executor = NodeExecutor(num_threads=3, context=context)
     executor.add_node(node)
     executor.add_node(player)
     stop = threading.Event()

@@ -34,6 +34,7 @@ from visualization_msgs.msg import MarkerArray  # noqa: E402
 
 from rtabmap_ros2.errors import RtabmapError  # noqa: E402
 from rtabmap_ros2.ros import conversions as conv  # noqa: E402
+from rtabmap_ros2.ros.executor import NodeExecutor  # noqa: E402
 from rtabmap_ros2.ros.node import (  # noqa: E402
     FRAME_QUEUE_SIZE, RtabmapNode, checked_export_path, new_export_folder)
 
@@ -140,7 +141,7 @@ class Harness:
                   "qos": "reliable", **overrides}
         self.node = RtabmapNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
         self.tester = SensorRig(context)
-        self.executor = MultiThreadedExecutor(num_threads=4, context=context)
+        self.executor = NodeExecutor(num_threads=4, context=context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.tester)
         self._spinning = contextlib.ExitStack()
