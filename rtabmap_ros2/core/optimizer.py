@@ -614,7 +614,6 @@ class IncrementalOptimizer:
         self._isam = None
         self._nodes: set[int] = set()
         self._links: dict[tuple[int, int], Link] = {}  # every link held, active or rejected
-        self._loops: dict[tuple[int, int], Link] = {}  # the loop closures of _links (the robust rounds')
         self._factor: dict[tuple[int, int], int] = {}  # active link key -> iSAM2 factor index
         self._values = None  # the current estimate (gtsam Values)
 
@@ -639,7 +638,6 @@ class IncrementalOptimizer:
         self._isam = gtsam.ISAM2(isam_params)
         self._nodes = set(poses)
         self._links = {link.key(): link for link in used}
-        self._loops = {key: link for key, link in self._links.items() if link.type.is_loop_closure}
         self._factor = {}
         values = gtsam.Values()
         for node_id, pose in zip(poses, _gtsam_poses(np.stack(list(poses.values())), self.planar)):
@@ -681,7 +679,6 @@ class IncrementalOptimizer:
         remove = [self._factor.pop(key) for key in gone if key in self._factor]
         for key in gone:
             del self._links[key]
-            self._loops.pop(key, None)
         rejected_keys = {key for key in self._links if key not in self._factor}
         fresh = [link for key, link in by_key.items() if key not in self._links]
         graph = gtsam.NonlinearFactorGraph()
@@ -690,7 +687,6 @@ class IncrementalOptimizer:
         self._update(graph, values, remove, fresh)
         self._nodes |= new_nodes
         self._links.update((link.key(), link) for link in fresh)
-        self._loops.update((link.key(), link) for link in fresh if link.type.is_loop_closure)
         rejected = [self._links[key] for key in rejected_keys]
         iterations = self._converge()
         switched_off: list[Link] = []
@@ -742,7 +738,7 @@ class IncrementalOptimizer:
         import gtsam
 
         threshold = self.params.robust_reject_scale
-        loops = list(self._loops.values())
+        loops = [link for link in self._links.values() if link.type.is_loop_closure]
         plain = _plain_factors(loops, self.planar)
         iterations = 0
         for _ in range(ROBUST_ROUNDS):

@@ -13,8 +13,8 @@ signatures are the correspondences, and the rigid transform is estimated one of 
   around where the first estimate projects the keypoints (``guided_window``);
 * ``3d`` (the 2014 paper's, 0; ``auto`` when planar with laser scans, ICP then deciding x, y and
   yaw): RANSAC on the 3D-3D correspondences (Kabsch / Umeyama without
-  scale on 3 samples, every hypothesis scored against all correspondences, all hypotheses batched
-  compiled), refit by reweighted least squares.
+  scale on 3 samples, every hypothesis scored against all correspondences, in compiled loops), refit
+  by reweighted least squares.
 
 The loop closure is accepted with at least ``I`` (``min_inliers``) inliers. On a robot moving on a
 plane the transform is limited to x, y, yaw and refined with 2D point-to-line ICP on the laser
