@@ -229,11 +229,12 @@ class BayesFilter:
 
         The paper accepts the highest hypothesis when the new-location probability is below
         T_loop's complement; as in RTAB-Map, the value compared with T_loop is the total
-        loop closure probability ``1 - p(S_t = -1)``.
+        loop closure probability ``1 - p(S_t = -1)``. On an exact tie the newest location wins, as
+        in RTAB-Map (Rtabmap.cpp walks the posterior from the highest id with a strict ``>``).
         """
         best_id, best_p = 0, 0.0
         for loc, prob in self.posterior.items():
-            if loc != NEW_LOCATION and prob > best_p:
+            if loc != NEW_LOCATION and (prob > best_p or (prob == best_p and prob > 0.0 and loc > best_id)):
                 best_id, best_p = loc, prob
         p_new = self.posterior.get(NEW_LOCATION, 1.0)
         if best_id and self.params.hypothesis_hops > 0:

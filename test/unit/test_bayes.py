@@ -184,6 +184,16 @@ def test_single_hypothesis_is_never_accepted():
     assert not bayes.accepted(bayes.highest())
 
 
+def test_an_exact_tie_of_the_posterior_names_the_newest_location():
+    # Two identical images far apart (a place seen twice with nothing to tell them apart) end with
+    # the same posterior: RTAB-Map walks the posterior from the highest id and keeps the first
+    # strictly greater value, so the newest of them is the hypothesis, whatever the dict's order.
+    bayes = BayesFilter(BayesParams(hypothesis_hops=0), chain(list(range(1, 21))))
+    for ids in (range(1, 21), range(20, 0, -1)):
+        bayes.posterior = {NEW_LOCATION: 0.2, **{i: 0.3 if i in (3, 17) else 0.01 for i in ids}}
+        assert bayes.highest().location_id == 17
+
+
 def test_prediction_spreads_the_peak_and_pools_the_uniform_floor():
     # Every location has a floor of belief and location 20 a peak: mass is kept, the floor stays
     # uniform, the peak keeps its Gaussian shape on top of it.
