@@ -44,7 +44,7 @@ from rtabmap_ros2.core import files
 from rtabmap_ros2.core.database_batch import BatchRows, WriteBatch, commit, prepare
 from rtabmap_ros2.core.database_blobs import SensorBlobs, decode_depth, decode_rgb, encode_depth, encode_rgb
 from rtabmap_ros2.core.database_schema import (APPLICATION_ID, SCHEMA_VERSION, check_header, check_schema, connect,
-                                               create_schema, decode_transform, json_default)
+                                               create_schema, decode_transform, json_default, upgrade_schema)
 from rtabmap_ros2.core.graph import Link, LinkType
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 from rtabmap_ros2.core.signature import Signature
@@ -57,10 +57,11 @@ logger = logging.getLogger(__name__)
 CHECKPOINT_INTERVAL_S = 1.0
 CHECKPOINT_MAX_BATCHES = 30
 
+# {distortion}: c.distortion, or NULL in a schema 1 file opened read-only (not upgraded).
 _SIGNATURE_COLUMNS = """
     n.id, n.map_id, n.stamp_ns, n.weight, n.bad, n.T_odom_base, n.n_words, n.word_ids, n.keypoints,
     n.points3d, s.ranges, s.angle_min, s.angle_increment, s.range_min, s.range_max, s.T_base_laser,
-    c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.T_base_camera
+    c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.T_base_camera, {distortion}
     FROM nodes n LEFT JOIN scans s ON s.node_id = n.id LEFT JOIN cameras c ON c.node_id = n.id"""
 
 
@@ -90,8 +91,9 @@ class Database:
 
     Args:
         path: database file. Created with the schema if missing (its folder must exist); an
-            existing file must be one of ours with schema version :data:`SCHEMA_VERSION`,
-            otherwise :class:`DatabaseError` is raised and the file is left untouched.
+            existing file must be one of ours at a schema version this code reads, otherwise
+            :class:`DatabaseError` is raised and the file is left untouched; an older version is
+            upgraded in place when opened for writing (``database_schema.upgrade_schema``).
         read_only: open with the URI ``file:...?mode=ro``; every write raises DatabaseError.
     """
 
@@ -99,6 +101,7 @@ class Database:
         self.path = Path(path).expanduser().absolute()
         self.read_only = read_only
         self._conn: Optional[sqlite3.Connection] = None
+        self._signature_columns = _SIGNATURE_COLUMNS.format(distortion="c.distortion")
         self._writers: weakref.WeakSet[BackgroundWriter] = weakref.WeakSet()
         if not self.path.parent.is_dir():
             raise DatabaseError(f"cannot open database {self.path}: folder {self.path.parent} does not exist")
@@ -116,7 +119,14 @@ class Database:
                 create_schema(self._conn, self.path)
                 logger.info("created database %s (schema version %d)", self.path, SCHEMA_VERSION)
             else:
-                check_schema(self._conn, self.path)
+                version = check_schema(self._conn, self.path)
+                if version < SCHEMA_VERSION and not read_only:
+                    upgrade_schema(self._conn, version)
+                    logger.info("database %s upgraded from schema version %d to %d", self.path, version,
+                                SCHEMA_VERSION)
+                    version = SCHEMA_VERSION
+                if version < 2:
+                    self._signature_columns = _SIGNATURE_COLUMNS.format(distortion="NULL")
             if not read_only:
                 self._conn.execute("PRAGMA journal_mode=WAL")
         except sqlite3.Error as e:
@@ -187,7 +197,7 @@ class Database:
         ids = [int(i) for i in ids]
         if not ids:
             return []
-        rows = self._query(f"SELECT {_SIGNATURE_COLUMNS} WHERE n.id IN (SELECT value FROM json_each(?))",
+        rows = self._query(f"SELECT {self._signature_columns} WHERE n.id IN (SELECT value FROM json_each(?))",
                            (json.dumps(ids),))
         by_id = {row[0]: row for row in rows}
         missing = [i for i in ids if i not in by_id]
@@ -198,12 +208,14 @@ class Database:
     def _signature(self, row: tuple) -> Signature:
         (node_id, map_id, stamp_ns, weight, bad, pose, n, word_ids, keypoints, points3d,
          ranges, angle_min, angle_increment, range_min, range_max, T_base_laser,
-         fx, fy, cx, cy, width, height, T_base_camera) = row
+         fx, fy, cx, cy, width, height, T_base_camera, distortion) = row
         try:
             scan = None if ranges is None else LaserScan(
                 np.frombuffer(ranges, np.float32).copy(), angle_min, angle_increment, range_min, range_max,
                 decode_transform(T_base_laser))
-            camera = None if fx is None else CameraModel(fx, fy, cx, cy, width, height, decode_transform(T_base_camera))
+            camera = None if fx is None else CameraModel(
+                fx, fy, cx, cy, width, height, decode_transform(T_base_camera),
+                () if distortion is None else tuple(np.frombuffer(distortion, np.float64).tolist()))
             return Signature(
                 id=node_id, map_id=map_id, stamp_ns=stamp_ns, weight=weight, bad=bool(bad),
                 T_odom_base=decode_transform(pose),

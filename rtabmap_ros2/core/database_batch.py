@@ -176,7 +176,8 @@ def prepare(batch: WriteBatch) -> BatchRows:
         else:
             c = sig.camera
             rows.cameras.append((node_id, float(c.fx), float(c.fy), float(c.cx), float(c.cy), int(c.width),
-                                 int(c.height), encode_transform(c.T_base_camera, f"{what} T_base_camera")))
+                                 int(c.height), encode_transform(c.T_base_camera, f"{what} T_base_camera"),
+                                 np.asarray(c.distortion, dtype=np.float64).tobytes() if c.distortion else None))
         if blobs is not None:
             covariance = None
             if blobs.odom_covariance is not None:
@@ -268,7 +269,7 @@ def _apply_statements(conn: sqlite3.Connection, rows: BatchRows) -> None:
     many("DELETE FROM scans WHERE node_id = ?", rows.scan_deletes)
     many("INSERT OR REPLACE INTO scans VALUES (?, ?, ?, ?, ?, ?, ?)", rows.scans)
     many("DELETE FROM cameras WHERE node_id = ?", rows.camera_deletes)
-    many("INSERT OR REPLACE INTO cameras VALUES (?, ?, ?, ?, ?, ?, ?, ?)", rows.cameras)
+    many("INSERT OR REPLACE INTO cameras VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)", rows.cameras)
     sensor_rows = []
     for node_id, blobs, covariance in rows.sensor_data:
         blobs = blobs.encoded()

@@ -15,7 +15,8 @@ Tables (schema version :data:`SCHEMA_VERSION`, ``PRAGMA application_id`` = :data
   ``n_words`` and the word_ids (int64), keypoints (N,2 float32 px) and points3d (N,3 float32 m,
   base frame) blobs, all ``ndarray.tobytes()`` with dtype and shape implied by ``n_words``.
 * ``scans``: ranges (float32 blob, m) and geometry (angles rad, limits m, ``T_base_laser`` blob).
-* ``cameras``: ``fx fy cx cy`` (px), ``width height`` (px), ``T_base_camera`` blob.
+* ``cameras``: ``fx fy cx cy`` (px), ``width height`` (px), ``T_base_camera`` blob and, for images
+  not rectified, their lens ``distortion`` (float64 coefficients, NULL when rectified; schema 2).
 * ``sensor_data``: RGB as JPEG, depth as 16-bit PNG in millimetres, optional 6x6 odometry
   covariance; kept apart from ``nodes`` so graph-only queries never page through images.
 * ``words(id, dtype, dim, descriptor)``: the visual words (uint8 binary or float32 descriptors).
@@ -27,7 +28,9 @@ Tables (schema version :data:`SCHEMA_VERSION`, ``PRAGMA application_id`` = :data
 Columns holding arrays are ``ndarray.tobytes()`` (:func:`encode_transform` for 4x4 transforms);
 images are encoded by :mod:`rtabmap_ros2.core.database_blobs`. An existing file is opened only
 when its header (:func:`check_header`), application id, schema version and tables
-(:func:`check_schema`) say it is one of ours; it is never modified before that.
+(:func:`check_schema`) say it is one of ours; it is never modified before that. A file of schema
+version 1 (no ``cameras.distortion``) is read as it is and upgraded in place when opened for writing
+(:func:`upgrade_schema`: one column added, nothing else touched).
 """
 
 from __future__ import annotations
@@ -43,7 +46,8 @@ import numpy as np
 
 from rtabmap_ros2.errors import DatabaseError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+READABLE_SCHEMA_VERSIONS = (1, 2)  # 1: before cameras.distortion
 APPLICATION_ID = 0x52544232  # "RTB2" in PRAGMA application_id: marks the file as ours
 BUSY_TIMEOUT_S = 30.0  # wait this long for another connection's write lock before failing
 SQLITE_HEADER_SIZE = 100
@@ -84,7 +88,8 @@ CREATE TABLE cameras (
     node_id INTEGER PRIMARY KEY,
     fx REAL NOT NULL, fy REAL NOT NULL, cx REAL NOT NULL, cy REAL NOT NULL,
     width INTEGER NOT NULL, height INTEGER NOT NULL,
-    T_base_camera BLOB NOT NULL);
+    T_base_camera BLOB NOT NULL,
+    distortion BLOB);
 CREATE TABLE sensor_data (
     node_id INTEGER PRIMARY KEY,
     rgb_jpeg BLOB,
@@ -209,17 +214,34 @@ def create_schema(conn: sqlite3.Connection, path: Path) -> None:
         raise
 
 
-def check_schema(conn: sqlite3.Connection, path: Path) -> None:
-    """DatabaseError when the opened file is not one of our databases at :data:`SCHEMA_VERSION`."""
+def check_schema(conn: sqlite3.Connection, path: Path) -> int:
+    """The schema version of the opened file; DatabaseError when it is not one of our databases at
+    a version this code reads (:data:`READABLE_SCHEMA_VERSIONS`)."""
     app_id = conn.execute("PRAGMA application_id").fetchone()[0]
     if app_id != APPLICATION_ID:
         tables = [r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
         raise DatabaseError(f"{path} is a SQLite file but not an rtabmap_ros2 database "
                             f"(application_id {app_id}, tables {tables[:8]}); it was left untouched")
     version = conn.execute("PRAGMA user_version").fetchone()[0]
-    if version != SCHEMA_VERSION:
-        raise DatabaseError(f"{path} has schema version {version}, this rtabmap_ros2 reads version "
-                            f"{SCHEMA_VERSION}; use a matching rtabmap_ros2 version")
+    if version not in READABLE_SCHEMA_VERSIONS:
+        raise DatabaseError(f"{path} has schema version {version}, this rtabmap_ros2 reads versions "
+                            f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))}; use a matching rtabmap_ros2 version")
     missing = set(TABLES) - {r[0] for r in conn.execute("SELECT name FROM sqlite_master")}
     if missing:
         raise DatabaseError(f"{path} lacks tables {sorted(missing)}: the database is damaged")
+    return version
+
+
+def upgrade_schema(conn: sqlite3.Connection, version: int) -> None:
+    """Bring a file of an older schema ``version`` to :data:`SCHEMA_VERSION` in one transaction:
+    version 1 gains ``cameras.distortion`` (NULL: its images read as rectified, as they were)."""
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        if version < 2:
+            conn.execute("ALTER TABLE cameras ADD COLUMN distortion BLOB")
+        conn.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+        conn.execute("UPDATE info SET value = ? WHERE key = 'schema_version'", (SCHEMA_VERSION,))
+        conn.execute("COMMIT")
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise

@@ -153,7 +153,7 @@ def words_3d(keypoints: np.ndarray, depth_m: np.ndarray, camera: CameraModel) ->
         valid = np.isfinite(z) & (z > 0)
     if not valid.any():
         return out
-    p_cam = camera.back_project(camera.undistort(kp[valid]).astype(np.float64), z[valid])
+    p_cam = camera.back_project(kp[valid], z[valid])
     T = camera.T_base_camera
     out[valid] = (p_cam @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
     return out

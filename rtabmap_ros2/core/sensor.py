@@ -60,7 +60,9 @@ class CameraModel:
                                    P=K).reshape(-1, 2).astype(np.float32)
 
     def back_project(self, uv: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
-        """Points in the optical frame (N,3, m) of pixels ``uv`` (N,2, px) at depths (N,, m)."""
+        """Points in the optical frame (N,3, m) of pixels ``uv`` (N,2, px) of the image as taken at
+        depths (N,, m): with a lens distortion each point lies on its pixel's undistorted ray."""
+        uv = self.undistort(uv).astype(np.float64) if self.distortion else np.asarray(uv, dtype=np.float64)
         z = np.asarray(depth_m, dtype=np.float64)
         x = (uv[:, 0] - self.cx) * z / self.fx
         y = (uv[:, 1] - self.cy) * z / self.fy

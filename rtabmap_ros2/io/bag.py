@@ -930,16 +930,17 @@ class BagDataset:
 
 def _warn_if_not_rectified(path: Path, info: "_Raw") -> None:
     """Say once per bag how a camera's raw images are used when its CameraInfo has distortion
-    coefficients and no rectified projection (P = K): keypoints undistorted with D (RTAB-Map assumes
-    rectified images, Rtabmap/ImagesAlreadyRectified), or as they are when OpenCV cannot model D."""
+    coefficients and no rectified projection (P = K): keypoints and depth points undistorted with D
+    (RTAB-Map assumes rectified images, Rtabmap/ImagesAlreadyRectified), or as they are when OpenCV
+    cannot model D."""
     d = _raw_image_d(info.msg)
     if not d.size:
         return
     coefficients = " ".join(f"{v:g}" for v in d)
     if raw_image_distortion(info.msg):
         logger.warning("bag %s: %s has distortion coefficients D = [%s] and P = K: the images are not rectified; "
-                       "visual words are undistorted with D (the depth grid and clouds use the images as they are: "
-                       "rectify them first, e.g. image_proc's image_rect or 'tum2bag --rectify', for those too)",
+                       "visual words and depth points (grid, clouds) are placed on their undistorted rays with D; "
+                       "the images themselves are stored as recorded",
                        path, info.topic, coefficients)
     else:
         logger.warning("bag %s: %s has distortion coefficients D = [%s] (model %r) and P = K: the images are not "

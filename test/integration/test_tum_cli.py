@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from cli_result import error_line
+from rtabmap_ros2.core.database import Database
 from rtabmap_ros2.io.trajectory import read_tum
 
 CLI = [sys.executable, "-m", "rtabmap_ros2.cli.cli"]
@@ -47,6 +48,9 @@ def test_hand_held_camera_from_tum_folder_to_exported_6dof_map(tum_rpy_folder, t
     assert synchronised == 48 and processed + skipped == 48 and 15 <= processed <= 30
     assert "leaves the plane" not in mapped.stderr          # 6 DoF: nothing to warn about
     assert "not rectified" in mapped.stderr                 # the images are used as recorded, and it says so
+    with Database(db, read_only=True) as database:          # and export back-projects depth with their lens
+        first = database.load_signature(min(database.load_nodes()))
+    assert first.camera.distortion == pytest.approx((0.2624, -0.9531, -0.0054, 0.0026, 1.1633), abs=1e-3)
     with open(stats, newline="") as f:
         rows = list(csv.DictReader(f))
     listed = {line.split()[0] for line in (folder / "rgb.txt").read_text().splitlines()[1:]}

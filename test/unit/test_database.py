@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sqlite3
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -98,6 +99,56 @@ def test_signature_and_sensor_round_trip(db, rng):
     assert np.array_equal(np.isnan(depth_back), invalid)
     assert np.abs(depth_back[~invalid] - depth[~invalid]).max() <= 0.0005 + 1e-6  # within 1 mm (rounded)
     np.testing.assert_array_equal(blobs.odom_covariance, covariance)
+
+
+def test_a_raw_cameras_lens_distortion_round_trips(db, rng):
+    fr1 = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
+    sig = make_signature(rng, 4)
+    raw = replace(sig, id=5, camera=replace(sig.camera, distortion=fr1))
+    db.write(WriteBatch(locations=[(sig, None), (raw, None)]))
+    assert db.load_signature(5).camera.distortion == fr1
+    assert db.load_signature(4).camera.distortion == ()   # rectified images: none stored
+
+
+def _as_schema_1(path: Path) -> None:
+    """Turn a database file into what schema version 1 wrote (no cameras.distortion)."""
+    conn = sqlite3.connect(str(path), isolation_level=None)
+    conn.execute("ALTER TABLE cameras DROP COLUMN distortion")
+    conn.execute("PRAGMA user_version=1")
+    conn.execute("UPDATE info SET value = 1 WHERE key = 'schema_version'")
+    conn.close()
+
+
+def test_a_schema_1_file_is_read_as_it_is_and_upgraded_when_written(db_path, rng):
+    sig = make_signature(rng, 1)
+    with Database(db_path) as database:
+        database.write(WriteBatch(locations=[(sig, None)], links=[Link(1, 2, LinkType.NEIGHBOR)]))
+    _as_schema_1(db_path)
+    content = db_path.read_bytes()
+    with Database(db_path, read_only=True) as database:   # export, report: the file is not touched
+        got = database.load_signature(1)
+        assert got.camera.distortion == () and got.camera.fx == sig.camera.fx
+    assert db_path.read_bytes() == content
+    with Database(db_path) as database:                   # map, merge: upgraded in place, nothing lost
+        np.testing.assert_array_equal(database.load_signature(1).word_ids, sig.word_ids)
+        assert len(database.load_links()) == 1
+        raw = replace(sig, id=3, camera=replace(sig.camera, distortion=(0.1, -0.2, 0, 0)))
+        database.write(WriteBatch(locations=[(raw, None)]))
+    with Database(db_path, read_only=True) as database:
+        assert database.load_signature(3).camera.distortion == (0.1, -0.2, 0.0, 0.0)
+        assert database.conn.execute("PRAGMA user_version").fetchone()[0] == 2
+
+
+def test_a_newer_schema_is_refused_and_untouched(db_path, rng):
+    with Database(db_path) as database:
+        database.write(WriteBatch(locations=[(make_signature(rng, 1), None)]))
+    conn = sqlite3.connect(str(db_path), isolation_level=None)
+    conn.execute("PRAGMA user_version=99")
+    conn.close()
+    content = db_path.read_bytes()
+    with pytest.raises(DatabaseError, match="schema version 99"):
+        Database(db_path)
+    assert db_path.read_bytes() == content
 
 
 def test_signature_without_optional_parts(db):

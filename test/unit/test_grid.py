@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import cv2
 import numpy as np
 
 from rtabmap_ros2.core import transforms
@@ -140,6 +143,24 @@ def test_assemble_cloud_and_ply(tmp_path):
     assert n == len(pts) and len(body) == n * 15
     rec = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
     assert np.allclose(rec["z"], 2.0) and np.all(rec["r"] == 200)
+
+
+def test_the_cloud_of_a_raw_image_lies_on_its_pixels_true_rays():
+    """Depth images that are not rectified (a CameraInfo's D, P = K): each point lies on its pixel's
+    undistorted ray, so the cloud projected through the lens falls back on the pixels it came from
+    (the grid's depth cells back-project the same way)."""
+    fr1 = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
+    K = np.array([[517.3, 0, 318.6], [0, 516.5, 255.3], [0, 0, 1.0]])
+    raw = CameraModel(517.3, 516.5, 318.6, 255.3, 640, 480, distortion=fr1)
+    depth = np.full((480, 640), 2.0, np.float32)   # a wall facing the camera, 2 m along its axis
+    pts, _ = assemble_cloud({1: transforms.identity()}, {1: depth}, {}, {1: raw}, decimation=40, voxel=0.0)
+    rows, cols = np.mgrid[0:480:40, 0:640:40]
+    pixels = np.stack([cols.ravel(), rows.ravel()], axis=1).astype(np.float64)
+    seen, _ = cv2.projectPoints(pts.astype(np.float64), np.zeros(3), np.zeros(3), K, np.array(fr1))
+    np.testing.assert_allclose(seen.reshape(-1, 2), pixels, atol=0.1)   # OpenCV's iterative undistortion
+    pinhole, _ = assemble_cloud({1: transforms.identity()}, {1: depth}, {}, {1: replace(raw, distortion=())},
+                                decimation=40, voxel=0.0)
+    assert np.abs(pinhole - pts).max() > 0.02   # read as a pinhole's, the corners are centimetres off
 
 
 def test_scan_conflict_tells_a_wrong_alignment_from_the_right_one(rng):
