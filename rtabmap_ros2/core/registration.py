@@ -495,7 +495,7 @@ def register(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
     else:
         result = _register_3d(from_sig, to_sig, params, rng, descriptors)
     if icp:
-        result = _refine_withicp_fit(from_sig, to_sig, result, params)
+        result = _refine_with_icp(from_sig, to_sig, result, params)
     return result
 
 
@@ -881,7 +881,7 @@ def _pnp_information(T: np.ndarray, pairs: _WordPairs, inliers: np.ndarray, cam_
     return info, rmse
 
 
-def _refine_withicp_fit(from_sig: Signature, to_sig: Signature, visual: Registration,
+def _refine_with_icp(from_sig: Signature, to_sig: Signature, visual: Registration,
                      params: RegistrationParams) -> Registration:
     """2D ICP refinement of a visual loop closure (2014 §II-A), or RegistrationError.
 
