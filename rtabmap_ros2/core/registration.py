@@ -894,7 +894,7 @@ def _refine_with_icp(from_sig: Signature, to_sig: Signature, visual: Registratio
     source = to_sig.scan.points_base()
     target = from_sig.scan.points_base()
     fit = icp_fit(source, target, visual.T_from_to, None, params.icp_max_correspondence_distance,
-               params.icp_iterations)
+                  params.icp_iterations)
     T_icp, overlap, rmse = fit.T, fit.overlap, fit.rmse
     correction = float(np.linalg.norm(T_icp[:2, 3] - visual.T_from_to[:2, 3]))
     if overlap < params.icp_min_overlap:
@@ -970,8 +970,8 @@ def refine_neighbor_link(scan_map: np.ndarray, new_scan: LaserScan, T_odom: np.n
     odom_planar = odom_information[np.ix_(planar, planar)]
     # 1. Scan match from the odometry, held only weakly by it (NEIGHBOR_ICP_PRIOR_SCALE).
     fit = icp_fit(new_scan.points_base(), scan_map, T_odom,
-               NEIGHBOR_ICP_PRIOR_SCALE * odom_planar, params.icp_max_correspondence_distance,
-               params.icp_iterations)
+                  NEIGHBOR_ICP_PRIOR_SCALE * odom_planar, params.icp_max_correspondence_distance,
+                  params.icp_iterations)
     correction = float(np.linalg.norm(fit.T[:2, 3] - T_odom[:2, 3]))
     if fit.overlap < params.icp_min_overlap or correction >= params.icp_max_translation:
         raise RegistrationError(
