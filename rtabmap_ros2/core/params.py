@@ -107,7 +107,7 @@ class VocabularyParams:
         0, "kdtree: seed of the trees' random choices (FLANN draws its own on every run, so RTAB-Map itself "
         "is not repeatable: bench/bench_lcd.py --ours-runs compares several seeds with several of its runs)")
     rebuild_swap_frames: int = _p(
-        300,
+        1,
         "kdtree: the trees are rebuilt when they have doubled (Kp/FlannRebalancingFactor 2), in a background "
         "thread; the rebuild is swapped in this many frames (searches) after it started, and at least one frame "
         "per 1,000 words it holds (core/kdtree.py SWAP_WORDS_PER_SEARCH: a 1M-word rebuild takes ~8 s of CPU), "

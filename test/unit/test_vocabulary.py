@@ -437,7 +437,8 @@ def test_background_rebuild_gives_same_decisions_as_synchronous(rng, gated_rebui
 
 def test_close_and_garbage_collection_do_not_wait_for_a_rebuild(rng, gated_rebuild):
     centres, ids = random_binary(rng, 4000), np.arange(1, 4001)
-    vocab = grown_past_a_rebuild(VocabularyParams(), centres, ids)
+    params = VocabularyParams(rebuild_swap_frames=3)
+    vocab = grown_past_a_rebuild(params, centres, ids)
     assert vocab.rebuilding
     thread = vocab._kdtree._rebuild.thread
     collected = weakref.ref(vocab)
@@ -448,10 +449,25 @@ def test_close_and_garbage_collection_do_not_wait_for_a_rebuild(rng, gated_rebui
     thread.join(30)
     assert not thread.is_alive()
     # close() waits for the pending rebuild and discards it; the vocabulary stays usable.
-    vocab = grown_past_a_rebuild(VocabularyParams(), centres, ids)
+    vocab = grown_past_a_rebuild(params, centres, ids)
     vocab.close()
     vocab.close()
     assert not vocab.rebuilding and len(vocab) == 4000
+    assert vocab.match(centres[:50]).tolist() == ids[:50].tolist()
+
+
+def test_default_rebuild_is_in_use_within_a_frame_per_thousand_words(rng):
+    """Issue 48: RTAB-Map rebuilds its trees in the frame that doubles them; ours, in a thread, must be
+    in use as soon as issue 50's bound allows (one frame per SWAP_WORDS_PER_SEARCH words), not hundreds
+    of frames later: the 84-image set never saw one swapped in with 300 frames, every new word went
+    into the trees built over the first image's."""
+    centres, ids = random_binary(rng, 4000), np.arange(1, 4001)
+    vocab = grown_past_a_rebuild(VocabularyParams(), centres, ids)  # 4,000 words: a rebuild started
+    trees = vocab._kdtree
+    assert trees.rebuilding and trees.rebuilds == 0
+    for _ in range(-(-4000 // kdtree.SWAP_WORDS_PER_SEARCH) - 1):
+        vocab.match(centres[:5])
+    assert not trees.rebuilding and trees.rebuilds == 1
     assert vocab.match(centres[:50]).tolist() == ids[:50].tolist()
 
 
