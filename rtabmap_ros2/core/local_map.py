@@ -32,7 +32,7 @@ from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Graph, Link, LinkType, chain_poses, consensus_guess
 from rtabmap_ros2.core.grid import OccupancyGrid
 from rtabmap_ros2.core.local_grid import LocalGrid
-from rtabmap_ros2.core.loop_validation import fits_inter_session_majority, judged_links, max_error_ratio
+from rtabmap_ros2.core.loop_validation import fits_inter_session_majority, judged_links, max_error_ratio, only_bridges
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.node_tables import PoseTable
 from rtabmap_ros2.core.optimizer import IncrementalOptimizer, optimize
@@ -190,7 +190,7 @@ class LocalMapper:
         continued in iSAM2 when it can be (not after a merge placed by consensus, nodes leaving the
         local map or an undone frame), else solved in batch and iSAM2 started again from that
         solution. The frame's new loop closures are then checked (RTAB-Map's
-        RGBD/OptimizeMaxError): if they put a link more than ``graph.optimize_max_error`` standard
+        RGBD/OptimizeMaxError; not a map merge's, which bends nothing: only_bridges): if they put a link more than ``graph.optimize_max_error`` standard
         deviations off (max_error_ratio: a link already off before them counts by how far they
         moved it), they are removed and, as RTAB-Map does, the last solution is kept
         (_last_solution_kept): one solve per frame; the next frame re-solves.
@@ -233,7 +233,7 @@ class LocalMapper:
             new = {link.key() for link, _ in fresh}
             judged = judged_links(links, self.inactive_links, result.switched_off, new)
             worst = max_error_ratio(result.poses, judged, bool(self.planar), before=previous, new=new)
-            if worst > limit:
+            if worst > limit and not only_bridges(links, [link for link, _ in fresh]):
                 for link, before in fresh:
                     log.info("loop closure %d -> %d rejected: a link ends %.1f std devs off after "
                              "optimisation (> %.1f)", link.from_id, link.to_id, worst, limit)

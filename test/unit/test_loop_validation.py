@@ -10,7 +10,7 @@ import pytest
 from corridor_sessions import ODOM_INFO, corridor_scan, inter_link, two_corridor_sessions
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Link, LinkType, default_information
-from rtabmap_ros2.core.loop_validation import judged_links, max_error_ratio
+from rtabmap_ros2.core.loop_validation import judged_links, max_error_ratio, only_bridges
 
 
 def test_max_error_ratio_flags_a_link_bent_beyond_its_standard_deviation():
@@ -297,3 +297,50 @@ def test_a_loop_closure_off_by_10_cm_with_a_tight_covariance_is_rejected(shared_
             assert close_loop(T, reg.information) is not kept
         finally:
             rtabmap.close()
+
+
+def test_only_bridges_tells_a_merge_from_loop_closures_that_close_a_cycle():
+    info = default_information(1e-3)
+    chain = [Link(1, 2, LinkType.NEIGHBOR, transforms.identity(), info),
+             Link(2, 3, LinkType.NEIGHBOR, transforms.identity(), info),
+             Link(10, 11, LinkType.NEIGHBOR, transforms.identity(), info)]
+    merge = Link(11, 3, LinkType.LOOP_INTER, transforms.identity(), info)
+    second = Link(10, 1, LinkType.LOOP_INTER, transforms.identity(), info)
+    intra = Link(3, 1, LinkType.LOOP_INTRA, transforms.identity(), info)
+    assert only_bridges(chain + [merge], [merge])
+    assert not only_bridges(chain + [merge, second], [merge, second])  # two links between the same maps
+    assert not only_bridges(chain + [merge, second], [second])          # the maps were joined already
+    assert not only_bridges(chain + [intra], [intra])
+
+
+def test_a_map_merge_is_not_rejected_for_what_the_joined_maps_own_re_solve_moves(tmp_path):
+    """A merge adds one loop closure between two maps: a bridge, which bends nothing. Session 0's
+    kept poses are not the optimum of its own links (its odometry, while a tight loop closure 1 -> 3
+    says 10 cm more): re-solved in the merged local map, its neighbour links 1 -> 2 -> 3 stretch ~5
+    std devs. RGBD/OptimizeMaxError must not pin that on the merge (simulator seed 9: six merges of
+    session 5 refused for an old link moving 4 std devs; the session stayed a map of its own). A loop
+    closure that closes a cycle is still judged by it."""
+    rtabmap = two_corridor_sessions(tmp_path)
+    try:
+        memory, local = rtabmap.memory, rtabmap.local
+        local.params = rtabmap.params.with_value("graph.robust", False)
+        tight = np.diag(np.full(6, 1e6))  # 1 mm, 1 mrad
+        memory.add_loop_closure(Link(1, 3, LinkType.LOOP_INTRA, transforms.from_xy_yaw(1.1, 0.0, 0.0), tight))
+        memory.map_id = 1
+        local.kept_poses.update({1 + k: transforms.from_xy_yaw(0.5 * k, 0.0, 0.0) for k in range(30)})
+        local.poses = {31 + k: transforms.from_xy_yaw(0.5 * k, 0.5, 0.0) for k in range(30)}
+        merge = inter_link(49, 19)
+        local.new_loops.append((merge, memory.add_loop_closure(merge)))
+        poses, _ = local.optimize_component(60)
+        assert memory.graph.link(49, 19) is not None, "the merge was undone"
+        assert set(range(1, 31)) <= set(poses)
+        stretched = np.linalg.norm(transforms.relative(poses[1], poses[2])[:3, 3]) - 0.5
+        assert stretched > 0.03  # the old map's own re-solve moved its links (> 3 std devs)
+        # The same stretch caused by a frame's loop closure within the merged map: rejected.
+        local.poses = poses
+        pulling = Link(3, 5, LinkType.LOOP_INTRA, transforms.from_xy_yaw(0.7, 0.0, 0.0), tight)  # 30 cm short
+        local.new_loops = [(pulling, memory.add_loop_closure(pulling))]
+        local.optimize_component(60)
+        assert memory.graph.link(3, 5) is None
+    finally:
+        rtabmap.close()
