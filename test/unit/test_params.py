@@ -31,14 +31,15 @@ def test_defaults_are_the_papers_table_i():
 def test_one_detector_for_detect_map_and_the_node():
     """config/rtabmap.yaml (map, demo, the node) keeps detect's loop closure detection (issue 32) but for
     the values bench_slam.py measured for SLAM (the raw score, RTAB-Map's choice of the posterior's peak,
-    the new words' comparison, RTAB-Map's features without issue 48's two changes)."""
+    the new words' comparison, the kd-trees' later rebuild swap, RTAB-Map's features without issue 48's
+    two changes)."""
     from dataclasses import replace
 
     from rtabmap_ros2.core.params import default_config_path
 
     slam, defaults = Params.from_yaml(default_config_path()), Params()
     assert slam.bayes == replace(defaults.bayes, likelihood="eq1", hypothesis_hops=0)
-    assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False)
+    assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False, rebuild_swap_frames=300)
     assert slam.features == replace(defaults.features, roll_normalization=False, gftt_min_distance_px=7.0)
 
 
