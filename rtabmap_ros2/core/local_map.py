@@ -190,10 +190,11 @@ class LocalMapper:
         continued in iSAM2 when it can be (not after a merge placed by consensus, nodes leaving the
         local map or an undone frame), else solved in batch and iSAM2 started again from that
         solution. The frame's new loop closures are then checked (RTAB-Map's
-        RGBD/OptimizeMaxError; not a map merge's, which bends nothing: only_bridges): if they put a link more than ``graph.optimize_max_error`` standard
-        deviations off (max_error_ratio: a link already off before them counts by how far they
-        moved it), they are removed and, as RTAB-Map does, the last solution is kept
-        (_last_solution_kept): one solve per frame; the next frame re-solves.
+        RGBD/OptimizeMaxError; not a map merge's, which bends nothing: only_bridges): if they put a
+        link more than ``graph.optimize_max_error`` standard deviations off (max_error_ratio: a link
+        already off before them counts by how far they moved it), they are removed and, as RTAB-Map
+        does, the last solution is kept (_last_solution_kept): one solve per frame; the next frame
+        re-solves.
         """
         memory = self.memory
         component = memory.graph.component(root, allowed=memory.signatures)
