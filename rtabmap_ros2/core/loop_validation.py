@@ -32,7 +32,7 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis
-from rtabmap_ros2.core.graph import (Link, LinkTable, LinkType, PoseStack, agree, agree_many, connected_components,
+from rtabmap_ros2.core.graph import (Link, LinkTable, LinkType, PoseStack, agree, agree_many, bridges,
                                      default_information, loop_type, residuals)
 from rtabmap_ros2.core.grid import scan_conflict
 from rtabmap_ros2.core.memory import Memory
@@ -362,31 +362,18 @@ def max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: boo
 
 
 def only_bridges(links: list[Link], new: list[Link]) -> bool:
-    """True when the frame's ``new`` loop closures only join parts of the graph that no other link
-    of ``links`` connects, and no two of them join the same parts: each is a bridge (a map merge:
-    LoopValidator.allows adds the confirming loop closure alone). A bridge takes the shape the rest
-    of the graph gives it and bends no link at the optimum, so RGBD/OptimizeMaxError has nothing to
-    judge it by: whatever moved in the joined map's links is its own re-solve from the poses it was
-    left with (its kept poses are not always the optimum of its links: an iSAM2 solution, a frame
-    whose loop closures were undone). On simulator seed 9 an old inter-session link (6 mm std dev)
-    of the joined maps moved 24 mm in each merge of session 5, 4 std devs: six merges refused, the
-    session left a map of its own."""
-    keys = {link.key() for link in new}
-    rest = [link for link in links if link.key() not in keys]
+    """True when each of the frame's ``new`` loop closures is a bridge of ``links`` (graph.bridges:
+    no other path joins its ends, through the other new ones either): a map merge, which
+    LoopValidator.allows adds alone. A bridge takes the shape the rest of the graph gives it and
+    bends no link at the optimum, so RGBD/OptimizeMaxError has nothing to judge it by: whatever
+    moved in the joined map's links is its own re-solve from the poses it was left with (its kept
+    poses are not always the optimum of its links: an iSAM2 solution, a frame whose loop closures
+    were undone). On simulator seed 9 an old inter-session link (6 mm std dev) of the joined maps
+    moved 24 mm in each merge of session 5, 4 std devs: six merges refused, the session left a map
+    of its own."""
     nodes = {n for link in links for n in (link.from_id, link.to_id)}
-    part = {n: i for i, component in enumerate(connected_components(nodes, rest)) for n in component}
-    joined = {i: i for i in set(part.values())}  # union-find over the parts the new links join
-
-    def root(i: int) -> int:
-        while joined[i] != i:
-            i = joined[i]
-        return i
-    for link in new:
-        a, b = root(part[link.from_id]), root(part[link.to_id])
-        if a == b:
-            return False
-        joined[a] = b
-    return True
+    bridge_keys = {links[i].key() for i in bridges(nodes, links)}
+    return all(link.key() in bridge_keys for link in new)
 
 
 def judged_links(links: list[Link], inactive: set[tuple[int, int]], switched_off: list[Link],
