@@ -80,6 +80,7 @@ class SessionSummary:
     frames: int = 0
     nodes: int = 0
     skipped: int = 0
+    not_moved: int = 0
     loop_intra: int = 0
     loop_inter: int = 0
     rejected_online: int = 0
@@ -93,7 +94,9 @@ class SessionSummary:
                 f"WM {self.wm_size}, local map {self.local_map_size}, loop closures intra {self.loop_intra} "
                 f"/ inter {self.loop_inter} ({self.rejected_online} rejected while mapping), "
                 f"max pTime {self.max_process_time_ms:.0f} ms"
-                + (f", {self.skipped} bad frames skipped" if self.skipped else ""))
+                + (f", {self.skipped} bad frames skipped" if self.skipped else "")
+                + (f", {self.not_moved} frames not added: the robot moved less than graph.linear_update / "
+                   "angular_update (RGBD/LinearUpdate, RGBD/AngularUpdate)" if self.not_moved else ""))
 
 
 # What map --help says of the settings a camera-only or hand-held user needs (README "Hand-held
@@ -230,6 +233,7 @@ def map_datasets(rtabmap, datasets: Iterable[tuple[str, object]], progress: bool
 def _count(session: SessionSummary, stats) -> None:
     session.frames += 1
     session.nodes += int(bool(stats.location_id) and not stats.merged_id)
+    session.not_moved += int(stats.small_displacement)
     if stats.loop_closure_type == "loop_intra":
         session.loop_intra += 1
     elif stats.loop_closure_type == "loop_inter":
@@ -254,7 +258,12 @@ def mode_line(params) -> str:
     rate_text = (f"{rate:g} Hz, one synchronised frame per period" if rate > 0 else "every frame")
     grid = {"auto": "each node's laser scan, else its depth image", "laser": "laser scans",
             "depth": "depth images", "both": "laser scans and depth images"}[params.grid.sensor]
-    return (f"mode: {mode}; detection rate: {rate_text} (Rtabmap/DetectionRate, 0 = every frame); "
+    graph = params.graph
+    moved = " or ".join(f"{value:g} {unit}" for value, unit in ((graph.linear_update, "m"), (graph.angular_update, "rad"))
+                        if value > 0)
+    nodes = (f"; a frame becomes a node once the robot moved {moved} since the last one (RGBD/LinearUpdate, "
+             "RGBD/AngularUpdate)" if moved else "")
+    return (f"mode: {mode}; detection rate: {rate_text} (Rtabmap/DetectionRate, 0 = every frame){nodes}; "
             f"occupancy grid: {grid} (grid.sensor = Grid/Sensor {params.grid.sensor})")
 
 

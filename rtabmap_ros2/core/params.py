@@ -427,6 +427,16 @@ class GraphParams:
         60.0, "Odometry reset detection: across a silence longer than this (no frame; or a stamp going "
         "back, a bag replayed) odometry is not trusted to bridge more than odom_reset_jump: a robot "
         "that moved meanwhile starts a new map, joined again by loop closures", "s")
+    linear_update: float = _p(
+        0.0, "Minimum displacement to add a node (RTAB-Map's RGBD/LinearUpdate): a frame whose odometry moved "
+        "less than this along each of x, y and z since the session's last node, and less than angular_update "
+        "about each axis, does not become a node (nothing stored, no loop closure detection: the map stays as "
+        "it is while the robot stands still). 0 = translation not checked; with both 0, every frame becomes a "
+        "node. RTAB-Map's default is 0.1 m; ours is 0: every synchronised frame is a node and a robot standing still "
+        "is folded by rehearsal (memory.rehearsal_similarity) instead; 0.1 / 0.1 gives RTAB-Map's behaviour", "m")
+    angular_update: float = _p(
+        0.0, "Minimum rotation to add a node (RTAB-Map's RGBD/AngularUpdate): see linear_update; 0 = rotation "
+        "not checked. RTAB-Map's default is 0.1 rad", "rad")
     odom_default_variance: float = _p(
         1e-3, "Variance of neighbour links when odometry has no covariance", "m^2, rad^2")
     loop_closure_variance: float = _p(1e-3, "Variance of loop closure links (before robust scaling)",
@@ -445,6 +455,8 @@ class GraphParams:
         _check(self.odom_reset_jump >= 0, "graph.odom_reset_jump", self.odom_reset_jump, ">= 0")
         _check(self.odom_reset_speed >= 0, "graph.odom_reset_speed", self.odom_reset_speed, ">= 0")
         _check(self.odom_reset_max_gap > 0, "graph.odom_reset_max_gap", self.odom_reset_max_gap, "> 0")
+        _check(self.linear_update >= 0, "graph.linear_update", self.linear_update, ">= 0")
+        _check(self.angular_update >= 0, "graph.angular_update", self.angular_update, ">= 0")
         _check(self.odom_default_variance > 0, "graph.odom_default_variance", self.odom_default_variance, "> 0")
         _check(self.loop_closure_variance > 0, "graph.loop_closure_variance", self.loop_closure_variance, "> 0")
 
@@ -738,6 +750,8 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Optimizer/Robust": ("graph.robust", lambda v: _to_bool("Optimizer/Robust", v)),
     "RGBD/OptimizeMaxError": ("graph.optimize_max_error", float),
     "RGBD/NewMapOdomChangeDistance": ("graph.odom_reset_jump", float),
+    "RGBD/LinearUpdate": ("graph.linear_update", float),
+    "RGBD/AngularUpdate": ("graph.angular_update", float),
     "Grid/CellSize": ("grid.resolution", float),
     "Grid/RangeMax": ("grid.range_max", float),
     "Grid/Sensor": ("grid.sensor", lambda v: _GRID_SENSORS.get(int(v), f"Grid/Sensor {v}")),

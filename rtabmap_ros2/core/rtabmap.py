@@ -125,6 +125,8 @@ class Rtabmap:
         stats.new_map = self._maybe_start_new_map(frame)
         stats.map_id = self.memory.map_id
         self._check_planar(frame)
+        if not self.localization_mode and not stats.new_map and self._small_displacement(frame):
+            return self._skip(stats, t_start, t_process, watch)
         if self.localization_mode:
             hypothesis = self._localize(frame, features, stats, watch)
         else:
@@ -159,6 +161,34 @@ class Rtabmap:
         stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
         self._manage_memory(stats, hypothesis, watch.ms, slam=frame.T_odom_base is not None)
         watch.lap("transfer")
+        self._fill_sizes(stats)
+        stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
+        stats.timings_ms = watch.ms
+        self.memory.record_statistics(stats.to_dict())
+        self.memory.commit()
+        return stats
+
+    def _small_displacement(self, frame: SensorFrame) -> bool:
+        """RTAB-Map's RGBD/LinearUpdate and RGBD/AngularUpdate (Rtabmap.cpp, ``smallDisplacement``): True
+        when ``graph.linear_update`` or ``graph.angular_update`` is set and the frame's odometry moved less
+        than the one along each of x, y and z since the session's last node, and less than the other about
+        each axis (a threshold at 0 is not checked)."""
+        linear, angular = self.params.graph.linear_update, self.params.graph.angular_update
+        previous = self.memory.last_location()
+        if ((linear <= 0.0 and angular <= 0.0) or frame.T_odom_base is None or previous is None
+                or previous.map_id != self.memory.map_id or previous.T_odom_base is None):
+            return False
+        xyz_rpy = np.abs(transforms.to_xyz_rpy(transforms.relative(previous.T_odom_base, frame.T_odom_base)))
+        return bool((linear <= 0.0 or np.all(xyz_rpy[:3] < linear)) and (angular <= 0.0 or np.all(xyz_rpy[3:] < angular)))
+
+    def _skip(self, stats: Statistics, t_start: float, t_process: float, watch: Stopwatch) -> Statistics:
+        """A frame that does not become a node (_small_displacement): nothing is added, detected,
+        retrieved, optimised or transferred (RTAB-Map deletes such a location at the end of its
+        frame); its statistics are recorded with ``small_displacement`` set and no location."""
+        stats.small_displacement = True
+        self.memory.join()
+        watch.lap("database")
+        stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
         stats.timings_ms = watch.ms

@@ -38,6 +38,7 @@ class Statistics:
     merged_id: int = 0
     bad_signature: bool = False
     localized: bool = False
+    small_displacement: bool = False  # no node: odometry moved less than graph.linear_update / angular_update
     # Diagnostics of the detection (side by side with RTAB-Map's own statistics, issue 32):
     words_extracted: int = 0  # features of the image (before quantisation)
     rehearsal_similarity: float = 0.0  # Eq. 1 with the previous STM location (0: not compared)

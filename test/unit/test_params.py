@@ -45,6 +45,8 @@ def test_one_detector_for_detect_map_and_the_node():
 
 @pytest.mark.parametrize("alias, value, section, field, expected", [
     ("Mem/STMSize", "15", "memory", "stm_size", 15),
+    ("RGBD/LinearUpdate", "0.05", "graph", "linear_update", 0.05),
+    ("RGBD/AngularUpdate", "0.1", "graph", "angular_update", 0.1),
     ("Mem/RehearsalSimilarity", "0.45", "memory", "rehearsal_similarity", 0.45),
     ("Kp/TfIdfLikelihoodUsed", "false", "bayes", "likelihood", "eq1"),
     ("GFTT/MinDistance", "7", "features", "gftt_min_distance_px", 7.0),

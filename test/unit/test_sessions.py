@@ -274,3 +274,57 @@ def test_the_plane_is_the_first_pose_of_the_session():
     assert check.update(0, start @ transforms.from_xyz_rpy([0, 0, 0, 0.9 * PLANAR_TOLERANCE_RAD, 0, 0])) is None
     assert check.update(0, start @ transforms.from_xyz_rpy([0, 0, 0, 0, 1.1 * PLANAR_TOLERANCE_RAD, 0]))
     assert check.update(0, start @ transforms.from_xy_yaw(0.0, 0.0, 0.0, z=2.0)) is None   # said once
+
+
+# -- RGBD/LinearUpdate, RGBD/AngularUpdate: a robot that did not move adds no node ------------------
+
+def added_nodes(tmp_path, frames, params: Params) -> tuple[list[int], list[bool], int]:
+    """Per frame: its location id (0: none) and whether it was left out for a small displacement;
+    and the nodes in the database after the run."""
+    with Rtabmap(params, tmp_path / "update.db", delete_existing=True) as rtabmap:
+        stats = [rtabmap.process(frame) for frame in frames]
+        rtabmap.flush()
+        stored = rtabmap.db.node_count()
+    return [s.location_id for s in stats], [s.small_displacement for s in stats], stored
+
+
+def test_frames_of_a_robot_standing_still_do_not_become_nodes(tmp_path):
+    # Parked for 5 frames (odometry noise of a few mm), then 2 m at 0.5 m per frame, then parked.
+    rng = np.random.default_rng(3)
+    parked = [transforms.from_xy_yaw(*rng.normal(0.0, 0.003, 3)) for _ in range(5)]
+    route = list(drive([(0, 0), (2, 0)])[1:])
+    poses = parked + route + [route[-1]] * 4
+    frames = pose_frames(np.arange(len(poses), dtype=float), poses)
+    params = Params().with_overrides(["RGBD/LinearUpdate=0.1", "RGBD/AngularUpdate=0.1"])
+    ids, small, stored = added_nodes(tmp_path, frames, params)
+    assert small == [False] + [True] * 4 + [False] * len(route) + [True] * 4
+    assert [i > 0 for i in ids] == [not s for s in small]
+    assert stored == 1 + len(route)
+    # The defaults (both 0): every frame a node, as before.
+    ids, small, stored = added_nodes(tmp_path, frames, Params())
+    assert not any(small) and all(ids) and stored == len(frames)
+
+
+def test_rotation_alone_adds_a_node_only_when_angular_update_is_set(tmp_path):
+    # Turning on the spot, 0.3 rad a frame.
+    poses = [transforms.from_xy_yaw(0.0, 0.0, 0.3 * k) for k in range(6)]
+    frames = pose_frames(np.arange(6, dtype=float), poses)
+    both = Params().with_overrides(["graph.linear_update=0.1", "graph.angular_update=0.1"])
+    assert added_nodes(tmp_path, frames, both)[2] == 6
+    # Translation only: a robot turning on the spot has not moved.
+    assert added_nodes(tmp_path, frames, Params().with_value("graph.linear_update", 0.1))[2] == 1
+
+
+def test_an_odometry_reset_while_parked_starts_a_new_map_with_a_node(tmp_path):
+    # Parked at identity, odometry reset to identity (covariance 9999, RTAB-Map's reset signal):
+    # the new session's first frame is a node although odometry shows no motion.
+    lost = np.diag([9999.0] * 6)
+    frames = pose_frames([0.0, 1.0, 2.0], [np.eye(4)] * 3)
+    frames.insert(2, SensorFrame(int(1.5 * NS), np.eye(4), lost))
+    frames.append(SensorFrame(int(3 * NS), np.eye(4), COVARIANCE))
+    params = Params().with_value("graph.linear_update", 0.1)
+    with Rtabmap(params, tmp_path / "parked.db", delete_existing=True) as rtabmap:
+        stats = [rtabmap.process(frame) for frame in frames]
+    assert [s.small_displacement for s in stats][:2] == [False, True]
+    first_of_new_map = next(s for s in stats if s.new_map)
+    assert first_of_new_map.location_id > 0 and not first_of_new_map.small_displacement
