@@ -273,6 +273,7 @@ class RtabmapNode(Node):
         self.frames_processed = 0
         self.frames_dropped = 0          # pushed out of the full frame queue before being processed
         self.rehearsal_merges = 0        # processed frames merged into the previous node (no new node)
+        self.frames_not_moved = 0        # processed frames that added no node: RGBD/LinearUpdate, AngularUpdate
         self.dropped = DroppedInputs(self.get_logger())
         self.bad_messages = self.dropped.counts   # (topic, reason) -> dropped inputs
         self.messages_lost: dict[str, int] = {}   # topic -> messages lost in transport (DDS gaps)
@@ -639,6 +640,7 @@ class RtabmapNode(Node):
             return
         self.frames_processed += 1
         self.rehearsal_merges += int(bool(stats.merged_id))
+        self.frames_not_moved += int(stats.small_displacement)
         self.last_statistics = stats
         row = self.frame_times.add(timer)
         self._publisher.submit(Published(frame.stamp_ns, item.arrival, stats.to_dict(), local, localization_pose,
@@ -808,7 +810,9 @@ class RtabmapNode(Node):
         self._frames.stop()
         self._publisher.stop()
         self.get_logger().info(f"database {self.database_path} flushed and closed "
-                               f"({self.frames_processed} frames processed, {self.frames_dropped} dropped)")
+                               f"({self.frames_processed} frames processed, {self.frames_dropped} dropped"
+                               + (f", {self.frames_not_moved} not added: the robot moved less than "
+                                  "RGBD/LinearUpdate / AngularUpdate" if self.frames_not_moved else "") + ")")
         super().destroy_node()
 
 

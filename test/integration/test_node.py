@@ -406,6 +406,21 @@ def test_localization_mode_adds_no_node(harness, frames):
     assert int(harness.feed(frames[6])["location_id"]) > 0
 
 
+def test_frames_of_a_robot_that_did_not_move_add_no_node_with_rgbd_linear_update(context, tmp_path, frames, capfd):
+    """-p RGBD/LinearUpdate:=0.1 (RTAB-Map's): the same pose again half a second later adds no node,
+    says so on info and in the node's closing line; the next frame, 0.5 m on, is a node."""
+    h = Harness(context, tmp_path, **{"RGBD/LinearUpdate": 0.1, "detection_rate": 0.0})
+    try:
+        assert int(h.feed(frames[0])["location_id"]) > 0
+        info = h.feed(frames[0], stamp_ns=frames[0].stamp_ns + 500_000_000)
+        assert int(info["location_id"]) == 0 and info["small_displacement"] == "true", info
+        assert int(h.feed(frames[1])["location_id"]) > 0
+        assert h.node.frames_not_moved == 1
+    finally:
+        h.close()
+    assert "1 not added: the robot moved less than RGBD/LinearUpdate" in capfd.readouterr().err
+
+
 def test_backup_service_copies_the_database(harness, frames, tmp_path):
     for f in frames[:3]:
         harness.feed(f)
