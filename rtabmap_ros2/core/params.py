@@ -606,10 +606,24 @@ class Params:
     # -- reading -------------------------------------------------------------------------------
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], base: "Params | None" = None) -> "Params":
-        """Parameters from a (possibly nested, possibly ROS ``ros__parameters``) mapping."""
+        """Parameters from a (possibly nested, possibly ROS ``ros__parameters``) mapping.
+
+        A ROS 2 parameter file is read as the node reads it: an rtabmap_ros parameter with no
+        equivalent here (``RGBD/ProximityBySpace``, ``subscribe_rgbd``, ...) is left out with one
+        warning naming them all, so an rtabmap_ros launch's file works as it is; an unknown dotted
+        name (a typo of ours) is an error in any file."""
         params = base if base is not None else cls()
-        for name, value in flatten(_unwrap_ros(values)).items():
+        unwrapped = _unwrap_ros(values)
+        ignored = []
+        for name, value in flatten(unwrapped).items():
+            if unwrapped is not values and "." not in name and not known_name(name):
+                ignored.append(name)
+                continue
             params = params.with_value(name, value)
+        if ignored:
+            logging.getLogger(__name__).warning(
+                "ROS parameter file: %s ignored (rtabmap_ros parameters with no equivalent here; "
+                "rtabmap-ros2 params lists every parameter with its RTAB-Map name)", ", ".join(sorted(ignored)))
         return params
 
     @classmethod
@@ -799,6 +813,16 @@ REMOVED_PARAMETERS: dict[str, str] = {
                                          "loop closures on RTAB-Map's 84 images, docs/benchmarks.md); GFTT keeps the "
                                          "strongest corners of the whole image as RTAB-Map's does: delete this key",
 }
+
+
+def known_name(name: str) -> bool:
+    """Whether ``name`` is a parameter here under any accepted spelling (removed ones included:
+    they get their own message)."""
+    try:
+        resolve_name(name, None)
+    except ParameterError as exc:
+        return not str(exc).startswith("unknown parameter")
+    return True
 
 
 def resolve_name(name: str, value: Any) -> tuple[str, Any]:
