@@ -25,8 +25,8 @@ def add_param_arguments(parser: argparse.ArgumentParser, default_config: str | N
                        f"without them, the shipped config/{default_config}")
     else:
         config_help = ("parameter YAML (plain nested keys or a ROS 2 parameter file)"
-                       + (f"; default: the shipped config/{default_config}" if default_config
-                          else "; default: paper defaults"))
+                       + (f" applied over the shipped config/{default_config}, as the node's --params-file"
+                          if default_config else " applied over the defaults"))
     parser.add_argument("--config", metavar="FILE", default=None, help=config_help)
     parser.add_argument(
         "--set", metavar="NAME=VALUE", action="append", default=[], dest="overrides",
@@ -43,11 +43,14 @@ def _default_config(args: argparse.Namespace) -> str | None:
 
 
 def params_from_args(args: argparse.Namespace) -> Params:
-    """Parameters: defaults, then the config file, then ``--set`` overrides."""
+    """Parameters: the defaults, the command's shipped config over them (``map``: config/rtabmap.yaml),
+    ``--config`` over that, then ``--set``. A user's file names what it changes, as a parameter file
+    given to the node (whose base is the same shipped config): replacing the shipped config
+    instead, an rtabmap_ros file of a few settings silently dropped every SLAM setting it ships."""
     params = Params()
-    config = args.config or _default_config(args)
-    if config:
-        params = Params.from_yaml(config)
+    for config in (_default_config(args), args.config):
+        if config:
+            params = Params.from_yaml(config, base=params)
     return params.with_overrides(args.overrides)
 
 

@@ -213,3 +213,25 @@ def test_a_database_made_with_a_removed_parameter_still_loads(caplog):
     assert "bayes.likelihood_trim" in caplog.text
     with pytest.raises(ParameterError, match="removed in issue 48"):
         Params.from_mapping(stored)
+
+
+def test_a_config_given_to_map_applies_over_the_shipped_one(tmp_path):
+    # As the node's --params-file: the user's file changes what it names, the shipped SLAM settings
+    # stay (they were all replaced by the dataclass defaults before).
+    import argparse
+
+    from rtabmap_ros2.cli.common_args import add_param_arguments, params_from_args
+
+    path = tmp_path / "mine.yaml"
+    path.write_text("rtabmap:\n  ros__parameters:\n    Mem/STMSize: '12'\n")
+    parser = argparse.ArgumentParser()
+    add_param_arguments(parser, default_config="rtabmap.yaml")
+    shipped = Params.from_yaml(default_config_path())
+    params = params_from_args(parser.parse_args(["--config", str(path), "--set", "Rtabmap/LoopThr=0.2"]))
+    assert params.memory.stm_size == 12 and params.bayes.loop_threshold == 0.2
+    assert params.registration == shipped.registration and params.vocabulary == shipped.vocabulary
+    assert shipped.bayes.likelihood != Params().bayes.likelihood and params.bayes.likelihood == shipped.bayes.likelihood
+    # Without a shipped config (detect), the file applies over the defaults.
+    parser = argparse.ArgumentParser()
+    add_param_arguments(parser)
+    assert params_from_args(parser.parse_args(["--config", str(path)])) == Params().with_value("memory.stm_size", 12)
