@@ -259,8 +259,8 @@ def mode_line(params) -> str:
     grid = {"auto": "each node's laser scan, else its depth image", "laser": "laser scans",
             "depth": "depth images", "both": "laser scans and depth images"}[params.grid.sensor]
     graph = params.graph
-    moved = " or ".join(f"{value:g} {unit}" for value, unit in ((graph.linear_update, "m"), (graph.angular_update, "rad"))
-                        if value > 0)
+    thresholds = ((graph.linear_update, "m"), (graph.angular_update, "rad"))
+    moved = " or ".join(f"{value:g} {unit}" for value, unit in thresholds if value > 0)
     nodes = (f"; a frame becomes a node once the robot moved {moved} since the last one (RGBD/LinearUpdate, "
              "RGBD/AngularUpdate)" if moved else "")
     return (f"mode: {mode}; detection rate: {rate_text} (Rtabmap/DetectionRate, 0 = every frame){nodes}; "

@@ -178,8 +178,8 @@ class Rtabmap:
         if ((linear <= 0.0 and angular <= 0.0) or frame.T_odom_base is None or previous is None
                 or previous.map_id != self.memory.map_id or previous.T_odom_base is None):
             return False
-        xyz_rpy = np.abs(transforms.to_xyz_rpy(transforms.relative(previous.T_odom_base, frame.T_odom_base)))
-        return bool((linear <= 0.0 or np.all(xyz_rpy[:3] < linear)) and (angular <= 0.0 or np.all(xyz_rpy[3:] < angular)))
+        moved = np.abs(transforms.to_xyz_rpy(transforms.relative(previous.T_odom_base, frame.T_odom_base)))
+        return bool((linear <= 0.0 or np.all(moved[:3] < linear)) and (angular <= 0.0 or np.all(moved[3:] < angular)))
 
     def _skip(self, stats: Statistics, t_start: float, t_process: float, watch: Stopwatch) -> Statistics:
         """A frame that does not become a node (_small_displacement): nothing is added, detected,
