@@ -12,7 +12,10 @@ where ``export`` reads them), and with ``--stats FILE.csv`` one row per frame
 (:data:`STATS_COLUMNS`, as ``detect``'s ``detections.csv``; ``stamp`` in seconds, exact). Sensor
 mounts come from each bag's ``/tf_static``; for a bag without it, ``--set
 base_to_laser=[x,y,z,roll,pitch,yaw]`` and ``--set base_to_camera=[...]`` (the camera's optical
-frame) give them. Frames with bad sensor data are skipped with a warning.
+frame) give them. Frames with bad sensor data are skipped with a warning. Topics are the node's
+(``/odom``, ``/scan``, ``/rgb/image``, ``/depth/image``, ``/rgb/camera_info``); ``--remap
+NAME:=TOPIC`` reads a bag made with other names, and a missing stream is listed with the bag's
+topics of its type (a bag without odometry is refused).
 
 A hand-held camera or a robot moving in 3D: ``--set Reg/Force3DoF=false`` (6 DoF; the shipped
 config is a wheeled robot's, planar); every frame rather than 1 Hz: ``--set Rtabmap/DetectionRate=0``.
@@ -121,8 +124,37 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--stats", metavar="FILE.csv", default=None,
                         help="write one row per frame: " + ", ".join(STATS_COLUMNS))
+    parser.add_argument("--remap", metavar="NAME:=TOPIC", action="append", default=[],
+                        help="read a stream from another topic, named as the node's topics are remapped: "
+                             + ", ".join(f"{name}:=TOPIC" for name in REMAP_NAMES)
+                             + " (e.g. --remap rgb/image:=/camera/color/image_raw; repeatable)")
     add_param_arguments(parser, default_config="rtabmap.yaml")
     parser.set_defaults(func=run)
+
+
+# --remap names: the node's topic names (what `ros2 run ... -r rgb/image:=...` remaps) -> bag stream.
+REMAP_NAMES = {"odom": "odom", "scan": "scan", "rgb/image": "rgb", "depth/image": "depth",
+               "rgb/camera_info": "camera_info"}
+# Message type (its last part, ROS 1 and 2 alike) of each stream: a missing stream's likely topics.
+STREAM_TYPES = {"odom": ("Odometry",), "scan": ("LaserScan",), "rgb": ("Image", "CompressedImage"),
+                "depth": ("Image", "CompressedImage"), "camera_info": ("CameraInfo",)}
+
+
+def topic_names(remaps: list[str]):
+    """``--remap NAME:=TOPIC`` values -> the bag's TopicNames (the defaults for the others)."""
+    from rtabmap_ros2.errors import BagError
+    from rtabmap_ros2.io.bag import TopicNames
+
+    chosen = {}
+    for remap in remaps:
+        name, sep, topic = remap.partition(":=")
+        stream = REMAP_NAMES.get(name.strip().strip("/"))
+        if not sep or stream is None or not topic.strip():
+            raise BagError(f"--remap {remap!r}: expected NAME:=TOPIC with NAME one of {', '.join(REMAP_NAMES)}, "
+                           "e.g. --remap odom:=/odometry/filtered")
+        topic = topic.strip()
+        chosen[stream] = topic if topic.startswith("/") else "/" + topic
+    return TopicNames(**chosen)
 
 
 # Frames decoded ahead by a reader thread while the current one is processed (JPEG / PNG decoding
@@ -268,12 +300,22 @@ def mode_line(params) -> str:
 
 
 def topics_line(name: str, dataset) -> str:
-    """The topics a bag is read from, and the streams it does not have."""
+    """The topics a bag is read from, and the streams it does not have with the bag's topics of
+    their type (what to ``--remap``)."""
     from rtabmap_ros2.io.bag import STREAMS
 
     used = ", ".join(f"{dataset.stream_topics[s]} ({s})" for s in STREAMS if s in dataset.stream_topics)
-    missing = [dataset.topics.of(s) for s in STREAMS if s not in dataset.stream_topics]
-    return f"{name}: reading {used}" + (f"; not in the bag: {', '.join(missing)}" if missing else "")
+    missing = [f"{dataset.topics.of(s)}{_remap_hint(s, dataset)}" for s in STREAMS if s not in dataset.stream_topics]
+    return f"{name}: reading {used or 'nothing'}" + (f"; not in the bag: {', '.join(missing)}" if missing else "")
+
+
+def _remap_hint(stream: str, dataset) -> str:
+    """`` (--remap NAME:=TOPIC for the bag's TOPIC, ...)``: the bag's unused topics of the stream's type."""
+    used = set(dataset.stream_topics.values())
+    candidates = [t for t, kind in sorted(dataset.available_topics.items())
+                  if kind.rsplit("/", 1)[-1] in STREAM_TYPES[stream] and t not in used]
+    name = next(n for n, s in REMAP_NAMES.items() if s == stream)
+    return f" (the bag has {', '.join(candidates)}: --remap {name}:=TOPIC)" if candidates else ""
 
 
 def bag_line(name: str, dataset, params) -> str:
@@ -331,9 +373,13 @@ def run(args: argparse.Namespace) -> int:
     # Sensor mounts: the bag's /tf_static; where it has none, --set base_to_laser / base_to_camera.
     mounts = {"fallback_T_base_laser": from_xyz_rpy(params.node.base_to_laser),
               "fallback_T_base_camera": from_xyz_rpy(params.node.base_to_camera)}
-    datasets = [(Path(b).name, BagDataset(b, sync=params.sync, **mounts)) for b in args.bags]
+    topics = topic_names(args.remap)
+    datasets = [(Path(b).name, BagDataset(b, topics=topics, sync=params.sync, **mounts)) for b in args.bags]
     for name, dataset in datasets:
         print(topics_line(name, dataset))
+        if "odom" not in dataset.stream_topics:
+            raise BagError(f"bag {dataset.path} has no odometry on {topics.odom}: map needs the robot's odometry"
+                           f"{_remap_hint('odom', dataset) or ' (nav_msgs/Odometry; --remap odom:=TOPIC)'}")
     t0 = time.perf_counter()
     with Rtabmap(params, db_path, delete_existing=args.overwrite) as rtabmap, \
             statistics_csv(stats_path) as on_statistics:

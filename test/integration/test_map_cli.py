@@ -74,3 +74,31 @@ def test_map_stats_in_a_missing_folder_is_an_error(small_bags, tmp_path):
 def test_export_missing_database_is_an_error(tmp_path):
     result = run("export", tmp_path / "nope.db", "--out", tmp_path / "out")
     assert result.returncode == 2 and "does not exist" in result.stderr
+
+
+def test_a_bag_with_its_drivers_topic_names_is_read_through_remap(tmp_path):
+    # A RealSense-and-robot_localization bag: none of the default topics but the laser. map says
+    # which of the bag's topics could be each stream and refuses without odometry (it made a map of
+    # 0 nodes before, exit 0); --remap NAME:=TOPIC, the node's remapping names, reads them.
+    from rtabmap_ros2 import sim
+    from rtabmap_ros2.io.bag import TopicNames, write_bag
+
+    world = sim.build_world(seed=0)
+    session = sim.make_sessions(world, small=True, sessions=1)[0]
+    bag = write_bag(tmp_path / "bag", [sim.render_frame(world, session, i) for i in range(4)], topics=TopicNames(
+        odom="/odometry/filtered", rgb="/camera/color/image_raw", depth="/camera/aligned_depth_to_color/image_raw",
+        camera_info="/camera/color/camera_info"))
+    db = tmp_path / "map.db"
+    result = run("map", bag, "--db", db, "--no-progress")
+    assert result.returncode == 2 and not db.exists()
+    assert "--remap odom:=TOPIC" in result.stderr.splitlines()[-1] and "/odometry/filtered" in result.stderr
+    assert "/camera/color/image_raw" in result.stdout and "--remap rgb/image:=TOPIC" in result.stdout
+    result = run("map", bag, "--db", db, "--no-progress", "--remap", "odom:=/odometry/filtered",
+                 "--remap", "rgb/image:=/camera/color/image_raw",
+                 "--remap", "depth/image:=camera/aligned_depth_to_color/image_raw",
+                 "--remap", "/rgb/camera_info:=/camera/color/camera_info")
+    assert result.returncode == 0, result.stderr
+    assert "reading /odometry/filtered (odom), /scan (scan), /camera/color/image_raw (rgb)" in result.stdout
+    assert "session 0 (bag): 4 nodes from 4 frames" in result.stdout
+    result = run("map", bag, "--db", db, "--remap", "camera:=/x")
+    assert result.returncode == 2 and "expected NAME:=TOPIC" in result.stderr.splitlines()[-1]
