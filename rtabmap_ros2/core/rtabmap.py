@@ -161,6 +161,11 @@ class Rtabmap:
         stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
         self._manage_memory(stats, hypothesis, watch.ms, slam=frame.T_odom_base is not None)
         watch.lap("transfer")
+        return self._recorded(stats, t_start, watch)
+
+    def _recorded(self, stats: Statistics, t_start: float, watch: Stopwatch) -> Statistics:
+        """The end of every frame: memory sizes, total time and step times into ``stats``, which are
+        recorded in the database with what the frame changed (one commit)."""
         self._fill_sizes(stats)
         stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
         stats.timings_ms = watch.ms
@@ -189,12 +194,7 @@ class Rtabmap:
         self.memory.join()
         watch.lap("database")
         stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
-        self._fill_sizes(stats)
-        stats.total_time_ms = (time.perf_counter() - t_start) * 1000.0
-        stats.timings_ms = watch.ms
-        self.memory.record_statistics(stats.to_dict())
-        self.memory.commit()
-        return stats
+        return self._recorded(stats, t_start, watch)
 
     def local_map(self) -> LocalMap:
         """The optimised local map of the newest node (poses in the map frame)."""
