@@ -818,11 +818,20 @@ REMOVED_PARAMETERS: dict[str, str] = {
 def known_name(name: str) -> bool:
     """Whether ``name`` is a parameter here under any accepted spelling (removed ones included:
     they get their own message)."""
-    try:
-        resolve_name(name, None)
-    except ParameterError as exc:
-        return not str(exc).startswith("unknown parameter")
-    return True
+    return name in REMOVED_PARAMETERS or name in RTABMAP_ALIASES or _field_name(name) is not None
+
+
+def _field_name(name: str) -> str | None:
+    """The dotted name of a node parameter's plain name or of a dotted name; None if neither."""
+    if "." not in name and name in {f.name for f in fields(NodeParams)}:
+        return f"node.{name}"
+    section_name, _, field_name = name.partition(".")
+    sections = {f.name: f for f in fields(Params)}
+    if section_name in sections and field_name:
+        section_type = sections[section_name].default_factory  # type: ignore[misc]
+        if field_name in {f.name for f in fields(section_type)}:
+            return name
+    return None
 
 
 def resolve_name(name: str, value: Any) -> tuple[str, Any]:
@@ -835,14 +844,9 @@ def resolve_name(name: str, value: Any) -> tuple[str, Any]:
             return dotted, convert(value)
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"{name}={value!r} cannot be converted for {dotted}: {exc}") from exc
-    if "." not in name and name in {f.name for f in fields(NodeParams)}:
-        return f"node.{name}", value
-    section_name, _, field_name = name.partition(".")
-    sections = {f.name: f for f in fields(Params)}
-    if section_name in sections and field_name:
-        section_type = sections[section_name].default_factory  # type: ignore[misc]
-        if field_name in {f.name for f in fields(section_type)}:
-            return name, value
+    dotted = _field_name(name)
+    if dotted is not None:
+        return dotted, value
     raise ParameterError(
         f"unknown parameter {name!r}: use a dotted name such as memory.stm_size, an RTAB-Map name "
         f"such as Mem/STMSize, or a node parameter such as database_path"
