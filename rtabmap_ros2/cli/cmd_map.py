@@ -135,9 +135,6 @@ def add_parser(subparsers) -> None:
 # --remap names: the node's topic names (what `ros2 run ... -r rgb/image:=...` remaps) -> bag stream.
 REMAP_NAMES = {"odom": "odom", "scan": "scan", "rgb/image": "rgb", "depth/image": "depth",
                "rgb/camera_info": "camera_info"}
-# Message type (its last part, ROS 1 and 2 alike) of each stream: a missing stream's likely topics.
-STREAM_TYPES = {"odom": ("Odometry",), "scan": ("LaserScan",), "rgb": ("Image", "CompressedImage"),
-                "depth": ("Image", "CompressedImage"), "camera_info": ("CameraInfo",)}
 
 
 def topic_names(remaps: list[str]):
@@ -310,10 +307,8 @@ def topics_line(name: str, dataset) -> str:
 
 
 def _remap_hint(stream: str, dataset) -> str:
-    """`` (--remap NAME:=TOPIC for the bag's TOPIC, ...)``: the bag's unused topics of the stream's type."""
-    used = set(dataset.stream_topics.values())
-    candidates = [t for t, kind in sorted(dataset.available_topics.items())
-                  if kind.rsplit("/", 1)[-1] in STREAM_TYPES[stream] and t not in used]
+    """`` (the bag has TOPIC, ...: --remap NAME:=TOPIC)``: the bag's unread topics of the stream's type."""
+    candidates = dataset.unread_topics_of(stream)
     name = next(n for n, s in REMAP_NAMES.items() if s == stream)
     return f" (the bag has {', '.join(candidates)}: --remap {name}:=TOPIC)" if candidates else ""
 

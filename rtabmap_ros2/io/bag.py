@@ -125,6 +125,9 @@ IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
+# The message types each stream is read from (rosbags names ROS 1 types the same way).
+STREAM_TYPES = {"odom": (ODOM_TYPE,), "scan": (SCAN_TYPE,), "rgb": (IMAGE_TYPE, COMPRESSED_TYPE),
+                "depth": (IMAGE_TYPE, COMPRESSED_TYPE), "camera_info": (CAMERA_INFO_TYPE,)}
 TF_MSG_DEFINITION = "geometry_msgs/TransformStamped[] transforms"
 
 
@@ -748,6 +751,13 @@ class BagDataset:
             raise BagError(f"bag {self.path} has none of the topics {[topics.of(s) for s in STREAMS]}; "
                            f"it has: {self._describe(available)}")
         self.streams = tuple(s for s in STREAMS if s in self.stream_topics)
+
+    def unread_topics_of(self, stream: str) -> list[str]:
+        """The bag's topics of ``stream``'s message type that no stream is read from: where a stream
+        missing under its topic name may have been recorded."""
+        read = set(self.stream_topics.values())
+        return [topic for topic, msgtype in sorted(self.available_topics.items())
+                if msgtype in STREAM_TYPES[stream] and topic not in read]
 
     @staticmethod
     def _describe(available: dict[str, str]) -> str:
