@@ -33,7 +33,8 @@ import numpy as np
 
 from rtabmap_ros2.core.database import Database
 from rtabmap_ros2.core.graph import Link, LinkType, connected_components, consensus_guess
-from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid, assemble_cloud, depth_cells, voxel_filter
+from rtabmap_ros2.core.grid import (GridAccumulator, OccupancyGrid, assemble_cloud, depth_cells, grid_sources,
+                                   voxel_filter)
 from rtabmap_ros2.core.optimizer import OptimizationResult, optimize
 from rtabmap_ros2.core.params import Params
 
@@ -194,14 +195,8 @@ def assemble_global_grid(global_map: GlobalMap, database: Database, params: Para
     poses = _selected(global_map, nodes)
     sensor = params.grid.sensor
     scans = database.load_scans(ids=list(poses)) if sensor != "depth" and poses else {}
-    if sensor == "laser":
-        depth_ids: list[int] = []
-    elif sensor == "auto":
-        depth_ids = sorted(n for n in poses if n not in scans)
-    else:
-        depth_ids = sorted(poses)
-    if sensor == "depth":
-        scans = {}
+    depth_ids = sorted(n for n in poses if grid_sources(sensor, n in scans)[1])
+    scans = {n: scan for n, scan in scans.items() if grid_sources(sensor, True)[0]}
     accumulator = GridAccumulator(params.grid)
     for node_id, scan in scans.items():
         accumulator.add(poses[node_id], scan)

@@ -254,16 +254,35 @@ class DepthCells:
     ground_xy: np.ndarray
 
 
-def depth_cells(T_map_base: np.ndarray, depth_m: np.ndarray, camera: CameraModel, params: GridParams) -> DepthCells:
-    """Obstacle and ground cells of a depth image taken at ``T_map_base`` (module doc).
+@dataclass(frozen=True)
+class DepthPoints:
+    """What the grid keeps of one depth image, in the node's base frame (m): the live node's local
+    grid casts these at each new optimised pose instead of the image, which working memory does not
+    hold (RTAB-Map keeps a node's local grid with it the same way).
+
+    Attributes:
+        points: (N,3) float32 points of every ``depth_decimation``-th pixel with a valid depth up to
+            ``range_max``, one per cube of :data:`DEPTH_POINT_CELL_FRACTION` of a grid cell.
+        camera_xyz: (3,) the camera centre.
+    """
+
+    points: np.ndarray
+    camera_xyz: np.ndarray
+
+
+# depth_points keeps one point per cube of this fraction of a grid cell: a 640x480 image decimated by 4
+# has 19,200 points, 2-9k after thinning (tens of kB per node kept in WM), and a cell's content
+# (ground, obstacle) is decided by its points' heights, which the thinning keeps within the cube.
+DEPTH_POINT_CELL_FRACTION = 0.5
+
+
+def depth_points(depth_m: np.ndarray, camera: CameraModel, params: GridParams) -> DepthPoints:
+    """The points of a depth image the grid uses (:class:`DepthPoints`).
 
     Args:
-        T_map_base: 4x4 pose of the node's base in the map frame.
         depth_m: HxW float32 depth (m), NaN or 0 invalid, registered to ``camera``.
         camera: pinhole model (``T_base_camera`` to the optical frame).
-        params: resolution, range_max (depth limit, 0 = none), depth_decimation and the heights
-            (map-frame z, m): ground up to ``ground_height``, obstacles above it up to
-            ``max_obstacle_height`` (0 = no limit), nothing below ``min_ground_height`` (0 = no limit).
+        params: resolution, range_max (depth limit, 0 = none) and depth_decimation.
     """
     step = params.depth_decimation
     d = np.asarray(depth_m)[::step, ::step]
@@ -274,9 +293,32 @@ def depth_cells(T_map_base: np.ndarray, depth_m: np.ndarray, camera: CameraModel
             valid &= d <= params.range_max
     if depth_m.shape != (camera.height, camera.width):
         camera = camera.scaled(depth_m.shape[1], depth_m.shape[0])
-    T = T_map_base @ camera.T_base_camera
+    T = camera.T_base_camera
     p_cam = camera.back_project(np.stack([cols[valid], rows[valid]], axis=1).astype(np.float64), d[valid])
     points = p_cam @ T[:3, :3].T + T[:3, 3]
+    if len(points):
+        cubes = np.floor(points / (params.resolution * DEPTH_POINT_CELL_FRACTION)).astype(np.int64)
+        cubes -= cubes.min(axis=0)
+        span = cubes.max(axis=0) + 1
+        # One integer per cube (4x faster than unique rows) unless the cubes are too many to number.
+        keys = (np.ravel_multi_index(cubes.T, tuple(span)) if float(np.prod(span, dtype=np.float64)) < 2.0 ** 62
+                else cubes)
+        points = points[np.sort(np.unique(keys, axis=0, return_index=True)[1])]
+    return DepthPoints(points.astype(np.float32), T[:3, 3].copy())
+
+
+def points_cells(T_map_base: np.ndarray, depth: DepthPoints, params: GridParams) -> DepthCells:
+    """Obstacle and ground cells of a depth image's points (:func:`depth_points`) seen from
+    ``T_map_base`` (module doc).
+
+    Args:
+        T_map_base: 4x4 pose of the node's base in the map frame.
+        depth: the image's points in the base frame.
+        params: resolution and the heights (map-frame z, m): ground up to ``ground_height``,
+            obstacles above it up to ``max_obstacle_height`` (0 = no limit), nothing below
+            ``min_ground_height`` (0 = no limit).
+    """
+    points = depth.points.astype(np.float64) @ T_map_base[:3, :3].T + T_map_base[:3, 3]
     z = points[:, 2]
     ground = z <= params.ground_height
     obstacle = ~ground
@@ -293,7 +335,22 @@ def depth_cells(T_map_base: np.ndarray, depth_m: np.ndarray, camera: CameraModel
         dims = tuple(np.maximum(obstacle_cells.max(axis=0), ground_cells.max(axis=0)) - lo + 1)
         taken = np.ravel_multi_index((obstacle_cells - lo).T, dims)
         ground_cells = ground_cells[~np.isin(np.ravel_multi_index((ground_cells - lo).T, dims), taken)]
-    return DepthCells(T[:2, 3].copy(), (obstacle_cells + 0.5) * res, (ground_cells.reshape(-1, 2) + 0.5) * res)
+    origin = T_map_base[:3, :3] @ depth.camera_xyz + T_map_base[:3, 3]
+    return DepthCells(origin[:2].copy(), (obstacle_cells.reshape(-1, 2) + 0.5) * res,
+                      (ground_cells.reshape(-1, 2) + 0.5) * res)
+
+
+def grid_sources(sensor: str, has_scan: bool) -> tuple[bool, bool]:
+    """Whether a node's laser scan and whether its depth image go into the occupancy grid, by
+    ``grid.sensor``: laser, depth, both, or auto (the scan when the node has one, else the depth)."""
+    return sensor in ("laser", "both") or (sensor == "auto" and has_scan), \
+        sensor in ("depth", "both") or (sensor == "auto" and not has_scan)
+
+
+def depth_cells(T_map_base: np.ndarray, depth_m: np.ndarray, camera: CameraModel, params: GridParams) -> DepthCells:
+    """Obstacle and ground cells of a depth image taken at ``T_map_base``: :func:`points_cells` of
+    its :func:`depth_points`."""
+    return points_cells(T_map_base, depth_points(depth_m, camera, params), params)
 
 
 def build_grid(poses: dict[int, np.ndarray], scans: dict[int, LaserScan], params: GridParams) -> OccupancyGrid:

@@ -1,14 +1,15 @@
 """The local map's occupancy grid, kept up to date incrementally (issue 33; off the worker: issue 50).
 
-:class:`LocalGrid` holds a :class:`~rtabmap_ros2.core.grid.GridAccumulator` and the pose each
-node's scan was cast at. :meth:`LocalGrid.update` takes the local map as plain inputs (optimised
-poses and laser scans by node), so its owner can be the core (``LocalMapper.grid``) or another
-thread working on a snapshot of the local map (the live node builds its grid beside the worker).
+:class:`LocalGrid` holds a :class:`~rtabmap_ros2.core.grid.GridAccumulator` and what each node
+added to it at which pose. :meth:`LocalGrid.update` takes the local map as plain inputs (optimised
+poses, laser scans and depth points by node), so its owner can be the core (``LocalMapper.grid``)
+or another thread working on a snapshot of the local map (the live node builds its grid beside the
+worker).
 
-Laser scans only: the depth grid of ``grid.sensor`` (``core/grid.py`` ``depth_cells``, used by
-``get_map`` / ``export``) needs each node's depth image, which working memory does not keep (the
-database does); a depth local grid would keep each node's depth cells, in its base frame, beside
-its signature (docs/limitations.md).
+A node adds its laser scan, or the points of its depth image (``grid.sensor``: a camera-only
+robot's grid is its depth images', as ``export``'s; ``core/grid.py`` ``depth_points``), or both.
+The depth points are kept with the signature in the base frame, made once when the node is
+created, as RTAB-Map keeps a node's local grid: working memory does not hold the images.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typing import Mapping, Optional
 
 import numpy as np
 
-from rtabmap_ros2.core.grid import GridAccumulator, OccupancyGrid
+from rtabmap_ros2.core.grid import DepthCells, DepthPoints, GridAccumulator, OccupancyGrid, points_cells
 from rtabmap_ros2.core.params import GridParams
 from rtabmap_ros2.core.sensor import LaserScan
 
@@ -32,63 +33,68 @@ GRID_DEFAULT_RANGE_M = 5.0
 
 
 class LocalGrid:
-    """Occupancy grid of a local map, updated with the scans that changed since the last update."""
+    """Occupancy grid of a local map, updated with the nodes that changed since the last update."""
 
     def __init__(self, params: GridParams) -> None:
         self.params = params
         self._grid: Optional[GridAccumulator] = None
-        self._cast: dict[int, tuple[np.ndarray, LaserScan]] = {}   # node -> (pose, scan) cast
+        # node -> (pose, scan, depth cells) cast into the grid
+        self._cast: dict[int, tuple[np.ndarray, Optional[LaserScan], Optional[DepthCells]]] = {}
         # Nodes not cast at their current pose after the last update (a budget left them).
         self.pending = 0
 
     def reset(self) -> None:
-        """Forget every cast scan (the next update starts a new grid)."""
+        """Forget every cast node (the next update starts a new grid)."""
         self._grid = None
         self._cast.clear()
         self.pending = 0
 
     def update(self, poses: Mapping[int, np.ndarray], scans: Mapping[int, LaserScan],
-               max_casts: Optional[int] = None) -> Optional[OccupancyGrid]:
-        """The grid of the nodes of ``poses`` that have a scan in ``scans``, or None without scans.
+               max_casts: Optional[int] = None, depth: Optional[Mapping[int, DepthPoints]] = None
+               ) -> Optional[OccupancyGrid]:
+        """The grid of the nodes of ``poses`` that have a scan in ``scans`` or points in ``depth``,
+        or None without either.
 
-        Incremental: new nodes are ray-cast into the previous grid; a node that left the local map
-        or whose pose moved (more than :data:`GRID_RECAST_CELLS` of a cell) is taken back out at the
-        pose it was cast at and cast again at its new pose, so an update costs the scans that
+        Incremental: new nodes are cast into the previous grid; a node that left the local map or
+        whose pose moved (more than :data:`GRID_RECAST_CELLS` of a cell) is taken back out at the
+        pose it was cast at and cast again at its new pose, so an update costs the nodes that
         changed, not the whole map's. Without ``max_casts``, when most of them moved (a loop
         closure) the grid is cast again from scratch, which is then cheaper.
 
         With ``max_casts`` (the live node: a loop closure on a map of 700 nodes moved them all and
-        recasting them took 1-4 s), at most that many scans are cast (taken back or added) per
+        recasting them took 1-4 s), at most that many nodes are cast (taken back or added) per
         call: the nodes that left first, then the moved and new ones nearest the newest node (the
         largest id), so the grid around the robot is right first and the rest follows over the
         next calls (``pending`` says how many nodes are not cast at their current pose yet).
 
         Args:
             poses: node -> 4x4 optimised pose (map frame) of the local map's nodes.
-            scans: node -> laser scan (nodes without one are left out of the grid).
-            max_casts: scans cast per call at most (None: all).
+            scans: node -> laser scan.
+            max_casts: nodes cast per call at most (None: all).
+            depth: node -> its depth image's points (grid.depth_points).
         """
-        scans = {n: scans[n] for n in poses if n in scans and scans[n] is not None}
-        if not scans:
+        depth = depth or {}
+        views = {n: (scans.get(n), depth.get(n)) for n in poses
+                 if scans.get(n) is not None or depth.get(n) is not None}
+        if not views:
             self.pending = 0
             return None
         cast = self._cast
         tolerance_m = GRID_RECAST_CELLS * self.params.resolution
         tolerance_rad = tolerance_m / (self.params.range_max or GRID_DEFAULT_RANGE_M)
-        left = [n for n in cast if n not in scans]
-        kept = [n for n in scans if n in cast]
+        left = [n for n in cast if n not in views]
+        kept = [n for n in views if n in cast]
         moved = set(np.asarray(kept)[_moved([cast[n][0] for n in kept], [poses[n] for n in kept],
                                              tolerance_m, tolerance_rad)].tolist()) if kept else set()
         if self._grid is None or (max_casts is None and 2 * (len(left) + len(moved)) > len(cast)):
             self._grid = GridAccumulator(self.params)
             cast.clear()
             left, moved = [], set()
-        todo = [n for n in scans if n not in cast or n in moved]
+        todo = [n for n in views if n not in cast or n in moved]
         budget = len(left) + len(todo) + len(moved) if max_casts is None else max(1, max_casts)
         taken_back = 0
         for node in left[:budget]:   # left the local map: taken back first
-            pose, scan = cast.pop(node)
-            self._grid.add(pose, scan, weight=-1)
+            self._take_back(node)
             taken_back += 1
         budget -= taken_back
         if max_casts is not None and len(todo) > budget:
@@ -100,14 +106,30 @@ class LocalGrid:
             if cost > budget:
                 break
             if node in moved:
-                pose, scan = cast.pop(node)
-                self._grid.add(pose, scan, weight=-1)
-            self._grid.add(poses[node], scans[node])
-            cast[node] = (poses[node], scans[node])
+                self._take_back(node)
+            self._cast_node(node, poses[node], *views[node])
             budget -= cost
             done += 1
         self.pending = len(left) - taken_back + len(todo) - done
         return self._grid.grid()
+
+    def _cast_node(self, node: int, pose: np.ndarray, scan: Optional[LaserScan], points: Optional[DepthPoints]
+                   ) -> None:
+        """Add a node's scan and / or depth cells at ``pose``, remembering what was added."""
+        cells = points_cells(pose, points, self.params) if points is not None else None
+        if scan is not None:
+            self._grid.add(pose, scan)
+        if cells is not None:
+            self._grid.add_depth(cells)
+        self._cast[node] = (pose, scan, cells)
+
+    def _take_back(self, node: int) -> None:
+        """Remove exactly what :meth:`_cast_node` added for ``node``."""
+        pose, scan, cells = self._cast.pop(node)
+        if scan is not None:
+            self._grid.add(pose, scan, weight=-1)
+        if cells is not None:
+            self._grid.add_depth(cells, weight=-1)
 
 
 def _moved(before: list[np.ndarray], after: list[np.ndarray], tolerance_m: float, tolerance_rad: float) -> np.ndarray:

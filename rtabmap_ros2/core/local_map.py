@@ -30,7 +30,7 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Graph, Link, LinkType, chain_poses, consensus_guess
-from rtabmap_ros2.core.grid import OccupancyGrid
+from rtabmap_ros2.core.grid import DepthPoints, OccupancyGrid
 from rtabmap_ros2.core.local_grid import LocalGrid
 from rtabmap_ros2.core.loop_validation import fits_inter_session_majority, judged_links, max_error_ratio, only_bridges
 from rtabmap_ros2.core.memory import Memory
@@ -48,14 +48,16 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class LocalMap:
-    """The optimised local map (2014 §II-C): WM nodes connected to the newest node; ``scans``: the
-    laser scan of each node that has one (what its occupancy grid is drawn from)."""
+    """The optimised local map (2014 §II-C): WM nodes connected to the newest node; what its
+    occupancy grid is drawn from: ``scans``, the laser scan of each node that has one, and
+    ``depth``, the depth points of each node whose grid uses its depth image (``grid.sensor``)."""
 
     poses: dict[int, np.ndarray]
     links: list[Link]
     map_ids: dict[int, int]
     T_map_odom: np.ndarray
     scans: dict[int, LaserScan] = field(default_factory=dict)
+    depth: dict[int, DepthPoints] = field(default_factory=dict)
 
 
 class LocalMapper:
@@ -120,12 +122,17 @@ class LocalMapper:
         return assemble_scan_map(scans, params.scan_map_voxel_size)
 
     def snapshot(self) -> LocalMap:
-        """A copy of the local map (poses in the map frame) for publishing or export; the scans are
-        shared, not copied (never modified)."""
-        signatures = self.memory.signatures
-        scans = {n: signatures[n].scan for n in self.poses if n in signatures and signatures[n].scan is not None}
+        """A copy of the local map (poses in the map frame) for publishing or export; the scans and
+        depth points are shared, not copied (never modified)."""
+        scans, depth = self._grid_views()
         return LocalMap(dict(self.poses), list(self.links), {n: self.memory.map_ids[n] for n in self.poses},
-                        self.T_map_odom.copy(), scans)
+                        self.T_map_odom.copy(), scans, depth)
+
+    def _grid_views(self) -> tuple[dict[int, LaserScan], dict[int, DepthPoints]]:
+        """The laser scans and the depth points of the local map's nodes that have them."""
+        signatures = [self.memory.signatures[n] for n in self.poses if n in self.memory.signatures]
+        return ({sig.id: sig.scan for sig in signatures if sig.scan is not None},
+                {sig.id: sig.depth_points for sig in signatures if sig.depth_points is not None})
 
     def forget(self, nodes: list[int], transferred_to_ltm: bool = False) -> None:
         """Nodes that left WM (transferred to LTM, or merged into the previous location by
@@ -151,14 +158,14 @@ class LocalMapper:
             self._solver.invalidate()
 
     def grid(self, max_casts: Optional[int] = None) -> Optional[OccupancyGrid]:
-        """Occupancy grid of the local map from the nodes' laser scans, or None without scans,
-        updated incrementally (:meth:`LocalGrid.update <rtabmap_ros2.core.local_grid.LocalGrid.update>`;
-        ``max_casts`` bounds the scans cast per call, ``grid_pending`` says how many wait)."""
+        """Occupancy grid of the local map from the nodes' laser scans and / or depth points, or None
+        without either, updated incrementally (:meth:`LocalGrid.update
+        <rtabmap_ros2.core.local_grid.LocalGrid.update>`; ``max_casts`` bounds the nodes cast per
+        call, ``grid_pending`` says how many wait)."""
         if self._grid.params is not self.params.grid:   # other grid parameters: a grid of its own
             self._grid = LocalGrid(self.params.grid)
-        signatures = self.memory.signatures
-        return self._grid.update(self.poses, {n: signatures[n].scan for n in self.poses if n in signatures},
-                                 max_casts)
+        scans, depth = self._grid_views()
+        return self._grid.update(self.poses, scans, max_casts, depth)
 
     @property
     def grid_pending(self) -> int:

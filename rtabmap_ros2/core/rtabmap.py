@@ -33,7 +33,7 @@ from rtabmap_ros2.core import registration, transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
-from rtabmap_ros2.core.grid import OccupancyGrid
+from rtabmap_ros2.core.grid import DepthPoints, OccupancyGrid, depth_points, grid_sources
 from rtabmap_ros2.core.heap import collection_deferred, release_free_heap
 from rtabmap_ros2.core.local_map import LocalMap, LocalMapper
 from rtabmap_ros2.core.loop_validation import LoopValidator
@@ -41,12 +41,12 @@ from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import load_backend, release
 from rtabmap_ros2.core.params import Params
 from rtabmap_ros2.core.registration import words_3d
-from rtabmap_ros2.core.sensor import SensorFrame
+from rtabmap_ros2.core.sensor import CameraModel, SensorFrame
 from rtabmap_ros2.core.sessions import REQUESTED, PlanarOdometryCheck, Sessions, odometry_information
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.statistics import Statistics, Stopwatch
 from rtabmap_ros2.core.wm_budget import WorkingMemoryBudget
-from rtabmap_ros2.errors import OptimizationError, RegistrationError, SensorDataError
+from rtabmap_ros2.errors import DatabaseError, OptimizationError, RegistrationError, SensorDataError
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +55,9 @@ log = logging.getLogger(__name__)
 HEAP_RELEASE_MIN_TRANSFERRED = 100
 # Steps whose time grows with WM (vocabulary, Bayes filter, local map): see WorkingMemoryBudget.
 SCALING_STEPS = ("quantization", "bayes", "optimization")
+# Nodes from the database (retrieved, or in WM when reopened) given their depth points per frame at
+# most (~5 ms each: the depth PNG decoded, its points made; grid.sensor using depth only).
+DEPTH_POINTS_LOADS_PER_FRAME = 4
 
 
 class Rtabmap:
@@ -86,6 +89,8 @@ class Rtabmap:
         self.local = LocalMapper(self.params, self.memory)
         self.validator = LoopValidator(self.params, self.memory, self.bayes, self.local)
         self._wm_budget = WorkingMemoryBudget(self.params.memory)
+        # Nodes in WM whose depth points are still to be made from the database (_load_depth_points).
+        self._depth_points_awaited = {n for n, sig in self.memory.signatures.items() if self._lacks_depth_points(sig)}
 
     # -- public API ----------------------------------------------------------------------------
     @property
@@ -142,8 +147,12 @@ class Rtabmap:
             retrieving += self.memory.retrieval_candidates(hypothesis.location_id, self.params.memory.max_retrieved,
                                                            exclude=retrieving)
         if retrieving:
-            stats.retrieved = len(self.memory.retrieve(retrieving))
+            retrieved = self.memory.retrieve(retrieving)
+            self._depth_points_awaited.update(n for n in retrieved
+                                              if self._lacks_depth_points(self.memory.signatures[n]))
+            stats.retrieved = len(retrieved)
             self.local.wm_changed |= bool(stats.retrieved)
+        self._load_depth_points()
         watch.lap("retrieval")
         # Local map (2014 §II-C), optimised every frame; graph work counts in pTime.
         if stats.location_id and frame.T_odom_base is not None:
@@ -201,8 +210,9 @@ class Rtabmap:
         return self.local.snapshot()
 
     def local_grid(self, max_casts: Optional[int] = None) -> Optional[OccupancyGrid]:
-        """Occupancy grid of the local map from the nodes' laser scans, or None without scans;
-        ``max_casts`` bounds the scans cast per call (LocalMapper.grid)."""
+        """Occupancy grid of the local map from the nodes' laser scans and / or depth images
+        (``grid.sensor``), or None without either; ``max_casts`` bounds the nodes cast per call
+        (LocalMapper.grid)."""
         return self.local.grid(max_casts)
 
     def trigger_new_map(self) -> int:
@@ -301,7 +311,8 @@ class Rtabmap:
         watch.lap("quantization")
         sig = Signature(id=node_id, map_id=memory.map_id, stamp_ns=frame.stamp_ns, word_ids=word_ids,
                         keypoints=_pinhole_keypoints(features, frame), points3d=points3d, T_odom_base=frame.T_odom_base,
-                        scan=frame.scan, camera=frame.camera, bad=bad)
+                        scan=frame.scan, camera=frame.camera, bad=bad,
+                        depth_points=self._depth_points(frame.depth_m, frame.camera, frame.scan is not None))
         blobs = SensorBlobs.deferred(frame.rgb, frame.depth_m, frame.odom_covariance)
         watch.lap("database")
         # Alg. 1 line 7: insert into STM with a neighbour link to the previous location.
@@ -367,6 +378,38 @@ class Rtabmap:
         hypothesis = self.bayes.highest()
         stats.new_location_probability = hypothesis.new_location_probability
         return hypothesis
+
+    def _depth_points(self, depth_m: Optional[np.ndarray], camera: Optional[CameraModel],
+                      has_scan: bool) -> Optional[DepthPoints]:
+        """The points of a node's depth image its local occupancy grid is drawn from, when
+        ``grid.sensor`` uses the depth for it (RTAB-Map makes a node's local grid when it creates
+        the node, RGBD/CreateOccupancyGrid): kept with the signature, as the laser scan is."""
+        if depth_m is None or camera is None or not grid_sources(self.params.grid.sensor, has_scan)[1]:
+            return None
+        return depth_points(depth_m, camera, self.params.grid)
+
+    def _lacks_depth_points(self, sig: Signature) -> bool:
+        """Whether ``sig`` came from the database without the depth points its grid uses."""
+        return sig.depth_points is None and sig.camera is not None \
+            and grid_sources(self.params.grid.sensor, sig.scan is not None)[1]
+
+    def _load_depth_points(self) -> None:
+        """Depth points of nodes in WM that came from the database (retrieved from LTM, or in WM
+        when it was reopened): it keeps their depth image, not its points. At most
+        :data:`DEPTH_POINTS_LOADS_PER_FRAME` a frame, the newest first (reopening a map whose WM
+        holds a thousand camera-only nodes does not stall a frame); until then the local grid
+        goes without them."""
+        signatures = self.memory.signatures
+        waiting = sorted((n for n in self._depth_points_awaited if n in signatures), reverse=True)
+        self._depth_points_awaited = set(waiting[DEPTH_POINTS_LOADS_PER_FRAME:])
+        for node in waiting[:DEPTH_POINTS_LOADS_PER_FRAME]:
+            sig = signatures[node]
+            try:
+                depth = self.memory.db.load_sensor_blobs(node).depth_m()
+            except DatabaseError as exc:
+                log.warning("node %d stays out of the local occupancy grid: %s", node, exc)
+                continue
+            sig.depth_points = self._depth_points(depth, sig.camera, sig.scan is not None)
 
     def _localize(self, frame: SensorFrame, features: Features, stats: Statistics,
                   watch: Stopwatch) -> Hypothesis:

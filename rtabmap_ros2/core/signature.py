@@ -2,7 +2,8 @@
 
 Held in RAM while the location is in STM or WM; in LTM it lives in the database only. Images are
 not kept in RAM (they are written to the database at creation); the laser scan is, because loop
-closure refinement and the local occupancy grid need it.
+closure refinement and the local occupancy grid need it, and so are the depth image's points the
+local occupancy grid is drawn from when it uses the depth (``grid.sensor``; grid.DepthPoints).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from typing import Optional
 
 import numpy as np
 
+from rtabmap_ros2.core.grid import DepthPoints
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
 
 
@@ -30,6 +32,8 @@ class Signature:
         points3d: (N,3) float32 positions of the words in the base frame (m); NaN without depth.
         T_odom_base: odometry pose (4x4) or None (appearance-only mode).
         scan: laser scan of the node, or None.
+        depth_points: the depth image's points for the local occupancy grid (base frame), or None
+            (no depth image, or ``grid.sensor`` does not use it for this node).
         camera: camera model of the node's images, or None.
         bad: a bad signature (too few words, 2013 §III-A): kept as a graph node only.
     """
@@ -43,6 +47,7 @@ class Signature:
     weight: int = 0
     T_odom_base: Optional[np.ndarray] = None
     scan: Optional[LaserScan] = None
+    depth_points: Optional[DepthPoints] = None
     camera: Optional[CameraModel] = None
     bad: bool = False
 

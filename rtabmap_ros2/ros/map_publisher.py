@@ -12,9 +12,10 @@ statistics and a snapshot of the local map) and goes on with the next frame. Two
   ``node_latency_ms``) runs from its last message to the publication of a map that holds it.
 * the **grid** thread: at most once per ``grid_period_s`` (and busy at most GRID_MAX_SHARE of the
   time: a loaded machine's slow updates are spaced out, not left to take the worker's CPU), the newest local map's occupancy grid
-  (:class:`~rtabmap_ros2.core.local_grid.LocalGrid`, its own: incremental, at most ``grid_max_casts``
-  scans cast per update, the nodes nearest the robot first) on ``map``; it goes on updating while
-  scans are left to cast (after a loop closure moved a large map) even when no new frame comes.
+  (:class:`~rtabmap_ros2.core.local_grid.LocalGrid`, its own: the nodes' laser scans and / or depth
+  points as ``grid.sensor`` says, incremental, at most ``grid_max_casts`` nodes cast per update, the
+  nodes nearest the robot first) on ``map``; it goes on updating while nodes are left to cast (after
+  a loop closure moved a large map) even when no new frame comes.
 
 Neither blocks the worker: :meth:`MapPublisher.submit` appends to a list. A publish that fails
 (e.g. the context shut down under it) is logged once per kind and the thread goes on.
@@ -202,7 +203,8 @@ class MapPublisher:
     def _publish_grid(self, grid: LocalGrid, newest: Published) -> None:
         timer = FrameTimer()
         with timer.part("local_grid"):
-            occupancy = grid.update(newest.local.poses, newest.local.scans, self._grid_max_casts)
+            occupancy = grid.update(newest.local.poses, newest.local.scans, self._grid_max_casts,
+                                    newest.local.depth)
         if occupancy is None:
             return
         with timer.part("map"):

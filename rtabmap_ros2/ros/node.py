@@ -735,10 +735,11 @@ class RtabmapNode(Node):
         return path
 
     def _global_map(self):
-        """``(GlobalMap, OccupancyGrid or None)`` of the whole database (all sessions, all
-        constraints), read through a read-only connection after a flush."""
+        """``(GlobalMap, GlobalGrid or None)`` of the whole database (all sessions, all
+        constraints), read through a read-only connection after a flush; the grid from the laser
+        scans and / or depth images as ``grid.sensor`` says (None without a posed node)."""
         from rtabmap_ros2.core.database import Database
-        from rtabmap_ros2.core.global_map import global_grid, load_global_map
+        from rtabmap_ros2.core.global_map import assemble_global_grid, load_global_map
 
         self._in_worker(lambda: self._core.flush(), "flush")
         global_map = load_global_map(self.database_path, self.params)
@@ -746,22 +747,23 @@ class RtabmapNode(Node):
         if global_map.poses:
             db = Database(self.database_path, read_only=True)
             try:
-                if db.load_scans(ids=list(global_map.poses)):
-                    grid = global_grid(global_map, db, self.params)
+                grid = assemble_global_grid(global_map, db, self.params)
             finally:
                 db.close()
         return global_map, grid
 
     def publish_global_map(self) -> None:
-        """Publish the global map on mapPath, mapGraph and (with scans) map."""
+        """Publish the global map on mapPath, mapGraph and (when its occupancy grid has cells) map."""
         global_map, grid = self._global_map()
         stamp = self.get_clock().now().nanoseconds
         map_frame = self.params.node.map_frame_id
         self._pub_path.publish(conv.path_to_msg(global_map.poses, stamp, map_frame))
         self._pub_graph.publish(conv.graph_to_markers(global_map.poses, global_map.links, stamp, map_frame))
-        if grid is not None:
-            self._pub_map.publish(conv.grid_to_msg(grid, stamp, map_frame))
-        self.get_logger().info(f"published the global map ({len(global_map.poses)} nodes)")
+        if grid is not None and not grid.empty_reason:
+            self._pub_map.publish(conv.grid_to_msg(grid.grid, stamp, map_frame))
+        self.get_logger().info(f"published the global map ({len(global_map.poses)} nodes"
+                               + (f", occupancy grid from {grid.source()})" if grid and not grid.empty_reason
+                                  else ", no occupancy grid)"))
 
     def _get_map(self, request, response):
         try:
@@ -769,10 +771,11 @@ class RtabmapNode(Node):
         except Exception as exc:  # noqa: BLE001 - a service must answer; the node keeps running
             self.get_logger().error(f"get_map failed: {type(exc).__name__}: {exc}")
             return response
-        if grid is None:
-            self.get_logger().warning("get_map: the map has no laser scans, so no occupancy grid")
+        if grid is None or grid.empty_reason:
+            self.get_logger().warning("get_map: no occupancy grid: "
+                                      + (grid.empty_reason if grid else "the map has no node with a pose"))
             return response
-        response.map = conv.grid_to_msg(grid, self.get_clock().now().nanoseconds,
+        response.map = conv.grid_to_msg(grid.grid, self.get_clock().now().nanoseconds,
                                         self.params.node.map_frame_id)
         return response
 

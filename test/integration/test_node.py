@@ -113,7 +113,7 @@ class SensorRig(Node):
             "rgb": conv.image_to_msg(frame.rgb, stamp, "camera_optical", encoding),
         }
         for name, msg in msgs.items():
-            if name not in skip:
+            if name not in skip and name in self.pubs:
                 self.pubs[name].publish(msg)
 
     def call(self, name: str, srv_type=Empty, timeout: float = TIMEOUT_S):
@@ -141,6 +141,8 @@ class Harness:
                   "qos": "reliable", **overrides}
         self.node = RtabmapNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
         self.tester = SensorRig(context)
+        if overrides.get("subscribe_scan") is False:   # a robot without a laser
+            self.tester.destroy_publisher(self.tester.pubs.pop("scan"))
         self.executor = NodeExecutor(num_threads=4, context=context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.tester)
@@ -455,6 +457,27 @@ def test_global_map_services(harness, frames, tmp_path):
     t.call("publish_map")
     assert wait_for(lambda: t.count("mapPath") > paths_before)
     assert len(t.last("mapPath").poses) >= len(frames[:6]) // 2
+
+
+def test_a_camera_only_robot_gets_its_map_grid_from_the_depth_images(context, tmp_path, frames):
+    """No laser (subscribe_scan false): the live grid on ``map`` is drawn from the nodes' depth images,
+    walls occupied and the floor before them free, and ``get_map`` builds the global one from them."""
+    harness = Harness(context, tmp_path, subscribe_scan=False)
+    try:
+        infos = [harness.feed(f) for f in frames[:6]]
+        assert all(int(i["location_id"]) > 0 for i in infos)
+        t = harness.tester
+        assert wait_for(lambda: t.count("map") > 0)
+        grid, resolution, _ = conv.grid_from_msg(t.last("map"))
+        assert resolution == pytest.approx(0.05)
+        assert (grid == 100).sum() > 20 and (grid == 0).sum() > 100 and (grid == -1).any()
+        global_grid = t.call("get_map", GetMap).map
+        assert global_grid.info.width > 1 and global_grid.info.height > 1
+        data = np.asarray(global_grid.data)
+        assert (data == 100).any() and (data == 0).any()
+        assert harness.node.frames_dropped == 0 and not harness.node.bad_messages
+    finally:
+        harness.close()
 
 
 def test_bad_messages_are_dropped_and_the_node_keeps_running(harness, frames):

@@ -9,7 +9,9 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.grid import (FREE, OCCUPIED, UNKNOWN, GridAccumulator, assemble_cloud, build_grid,
-                                    depth_cells, scan_conflict, voxel_filter, write_ply)
+                                    depth_cells, depth_points, points_cells, scan_conflict, voxel_filter,
+                                    write_ply)
+from rtabmap_ros2.core.local_grid import LocalGrid
 from rtabmap_ros2.io.bag import DEFAULT_T_BASE_CAMERA
 from rtabmap_ros2.core.params import GridParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
@@ -263,3 +265,69 @@ def test_a_depth_view_taken_back_leaves_the_counts_it_found():
     after = acc.grid()
     np.testing.assert_array_equal(after.data, before.data)
     assert acc.observed and not GridAccumulator(params).observed
+
+
+def test_depth_points_keep_one_point_per_half_cell_and_give_the_same_cells():
+    """What a node keeps of its depth image for the live grid: base-frame points, far fewer than
+    the image's pixels, and the cells they give at any pose are those of the image itself."""
+    params = GridParams(resolution=RES, depth_decimation=1)
+    camera = DEPTH_CAMERA.scaled(640, 480)
+    depth = wall_and_floor_depth(camera, height=1.013)   # the floor inside a cube, not on its border
+    points = depth_points(depth, camera, params)
+    assert points.points.dtype == np.float32 and len(points.points) < depth.size / 10
+    every_pixel = depth_points(depth, camera, GridParams(resolution=1e-6, depth_decimation=1)).points
+    assert len(every_pixel) == np.isfinite(depth).sum()
+    cubes = np.unique(np.floor(every_pixel.astype(np.float64) / (RES / 2)), axis=0)
+    assert abs(len(points.points) - len(cubes)) < 0.01 * len(cubes)   # one per cube of half a cell
+    np.testing.assert_allclose(points.camera_xyz, np.asarray(DEFAULT_T_BASE_CAMERA)[:3, 3])
+    for T in (transforms.from_xy_yaw(0.0, 0.0, 0.0, z=1.013), transforms.from_xy_yaw(3.0, -1.0, 2.0, z=1.013)):
+        cells = points_cells(T, points, params)
+        np.testing.assert_allclose(cells.origin_xy, (T @ DEFAULT_T_BASE_CAMERA)[:2, 3], atol=1e-6)
+        wall = (T @ DEFAULT_T_BASE_CAMERA @ [0.0, 0.0, WALL_X, 1.0])[:2]   # straight ahead of the camera
+        assert np.min(np.linalg.norm(cells.obstacles_xy - wall, axis=1)) < RES
+        assert len(cells.ground_xy) > 50
+    # Nothing valid (NaN, 0): no point, no cell.
+    empty = depth_points(np.full_like(depth, np.nan), camera, params)
+    assert empty.points.shape == (0, 3)
+    cells = points_cells(transforms.identity(), empty, params)
+    assert not len(cells.obstacles_xy) and not len(cells.ground_xy)
+
+
+def test_local_grid_of_depth_points_follows_moved_poses_exactly():
+    """A camera-only local map: the grid is its nodes' depth points; after a loop closure moved a
+    node, the incremental grid is the one drawn from scratch at the new poses."""
+    params = GridParams(resolution=RES)
+    views = {n: depth_points(wall_and_floor_depth(), DEPTH_CAMERA, params) for n in (1, 2, 3)}
+    poses = {n: transforms.from_xy_yaw(0.0, 0.3 * n, 0.0, z=CAMERA_HEIGHT) for n in views}   # the wall ahead of all
+    grid = LocalGrid(params)
+    first = grid.update(poses, {}, depth=views)
+    assert first is not None
+    wall = np.stack([np.full(30, WALL_X), np.linspace(-0.5, 1.5, 30)], axis=1)
+    near = np.stack([first.value_at(wall + d) for d in ([0, 0], [0, RES], [0, -RES])])
+    assert (near == OCCUPIED).any(axis=0).all()
+    assert (first.value_at(np.array([[1.0, 0.3], [1.5, 0.6], [1.9, 0.9]])) == FREE).all()
+    assert LocalGrid(params).update(poses, {}) is None                # nothing to draw from
+    moved = dict(poses)
+    moved[2] = transforms.from_xy_yaw(0.6, 0.5, 0.3, z=CAMERA_HEIGHT)
+    moved[4] = transforms.from_xy_yaw(0.0, -1.0, -0.5, z=CAMERA_HEIGHT)
+    views[4] = views[1]
+    del moved[1]                                                       # left the local map
+    incremental = grid.update(moved, {}, max_casts=10, depth=views)
+    assert grid.pending == 0
+    replayed = GridAccumulator(params)        # the same casts and take-backs, in one go
+    for node in (1, 2, 3):
+        replayed.add_depth(points_cells(poses[node], views[node], params))
+    for node in (1, 2):
+        replayed.add_depth(points_cells(poses[node], views[node], params), weight=-1)
+    for node in (2, 4):
+        replayed.add_depth(points_cells(moved[node], views[node], params))
+    expected = replayed.grid()
+    np.testing.assert_allclose(incremental.origin_xy, expected.origin_xy)
+    np.testing.assert_array_equal(incremental.data, expected.data)
+    # and the map drawn from scratch at the new poses (cells on a border may round the other way)
+    fresh = LocalGrid(params).update(moved, {}, depth=views)
+    assert incremental.data.shape == fresh.data.shape and (incremental.data != fresh.data).mean() < 0.005
+    # A node with a scan and depth points (grid.sensor both) adds both.
+    both = LocalGrid(params).update({1: poses[1]}, {1: room_scan(0.0, 0.3)}, depth={1: views[1]})
+    scan_only = LocalGrid(params).update({1: poses[1]}, {1: room_scan(0.0, 0.3)})
+    assert (both.data != UNKNOWN).sum() >= (scan_only.data != UNKNOWN).sum()

@@ -329,3 +329,42 @@ def test_a_bounded_local_grid_update_puts_the_robots_surroundings_right_first_th
         assert np.array_equal(grid.value_at(points), expected.value_at(points))
     finally:
         rtabmap.close()
+
+
+def test_a_camera_only_local_map_has_an_occupancy_grid_from_its_depth_images(tum_rpy_folder, tmp_path):
+    """No laser: each node keeps its depth image's points and the local grid is drawn from them
+    (grid.sensor auto), also for nodes that come back from the database (a reopened map), a few a
+    frame; with grid.sensor laser nothing is kept and there is no local grid."""
+    from dataclasses import replace
+
+    from rtabmap_ros2.core.grid import FREE, OCCUPIED
+    from rtabmap_ros2.core.rtabmap import DEPTH_POINTS_LOADS_PER_FRAME
+    from rtabmap_ros2.io.datasets import TumRgbdDataset
+
+    data = TumRgbdDataset(tum_rpy_folder(10))
+    frames = [replace(f, T_odom_base=T) for f, T in zip(data, data.ground_truth())]
+    params = Params().with_value("registration.planar", False)
+    path = tmp_path / "camera.db"
+    with Rtabmap(params, path) as rtabmap:
+        for f in frames[:7]:
+            rtabmap.process(f)
+        signatures = list(rtabmap.memory.signatures.values())
+        assert len(signatures) >= 5 and all(s.scan is None and s.depth_points is not None for s in signatures)
+        grid = rtabmap.local_grid()
+        assert grid is not None and (grid.data == OCCUPIED).sum() > 20 and (grid.data == FREE).sum() > 100
+        assert set(rtabmap.local_map().depth) == set(rtabmap.local_map().poses)
+    with Rtabmap(params, path) as again:          # WM back from the database, without the points
+        old = sorted(again.memory.signatures)
+        assert all(again.memory.signatures[n].depth_points is None for n in old)
+        again.process(frames[7])
+        loaded = [n for n in old if again.memory.signatures[n].depth_points is not None]
+        assert loaded == old[-DEPTH_POINTS_LOADS_PER_FRAME:]          # the newest first, a few a frame
+        for f in frames[8:10]:
+            again.process(f)
+        assert all(again.memory.signatures[n].depth_points is not None for n in old)
+    laser_only = Params().with_value("registration.planar", False).with_value("grid.sensor", "laser")
+    with Rtabmap(laser_only, tmp_path / "laser_only.db") as rtabmap:
+        for f in frames[:3]:
+            rtabmap.process(f)
+        assert all(s.depth_points is None for s in rtabmap.memory.signatures.values())
+        assert rtabmap.local_grid() is None
