@@ -145,7 +145,7 @@ class _CachedFeatures:
                          for a, b in zip(bounds[:-1], bounds[1:])]
         self.next = 0
 
-    def extract(self, image) -> object:
+    def extract(self, image, depth_m=None) -> object:
         features = self.features[self.next]
         self.next += 1
         return features

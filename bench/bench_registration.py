@@ -17,7 +17,8 @@ entries are replaced).
    that best aligns the two images photometrically (every pixel with depth, started at the ground
    truth), against the ground truth, and each estimate's distance from it. Summary per estimator
    and ablation (no two-view refinement, no guided matching, keypoints undistorted with the fr1
-   calibration): accepted and kept, median and max error, over 3 cm or 1.5 deg, time.
+   calibration, features only where the depth is valid as RTAB-Map's Mem/DepthAsMask): accepted and
+   kept, median and max error, over 3 cm or 1.5 deg, time.
 2. ICP (2D point-to-line): Intel lab corrected log, scans k -> k+5 overlapping >= 50 % at the
    reference, started 10 cm / 3 degrees off; error and time (median). Baseline: the start error.
 3. Neighbour links (RGBD/NeighborLinkRefining): wheel odometry, ICP against the previous scan and
@@ -177,7 +178,7 @@ def loop_pair(folder: Path, params: Params, undistort: bool = False) -> dict:
     frames, signatures = {}, {}
     for node, which in ((1, "prev"), (2, "curr")):
         rgb, depth, pose = frames[which] = _read_frame(folder, which)
-        features = extractor.extract(rgb)
+        features = extractor.extract(rgb, depth)   # as frame_features does
         word_ids, _ = vocabulary.quantize(features.descriptors)
         points = words_3d(features.keypoints, depth, camera)
         signatures[which] = Signature(node, 1, 0, word_ids, camera.undistort(features.keypoints), points, camera=camera)
@@ -322,12 +323,16 @@ def loop_pairs(quick: bool) -> dict:
     6 DoF) and the 3D-3D RANSAC, with ablations, and the images' own photometric optimum."""
     params = Params.from_yaml(default_config_path())
     pnp = replace(params.registration, planar=False, icp_refine=False)
-    estimators = {"pnp": (pnp, True, False), "3d": (replace(pnp, estimation="3d"), True, False)}
+    # estimator -> (registration parameters, descriptors paired, the pair's signatures: as the SLAM path
+    # makes them ("plain"), keypoints undistorted, features only where the depth is valid)
+    estimators = {"pnp": (pnp, True, "plain"), "3d": (replace(pnp, estimation="3d"), True, "plain")}
     if not quick:
         estimators.update({
-            "pnp, no two-view refinement": (replace(pnp, bundle_adjustment=False), True, False),
-            "pnp, no guided matching": (replace(pnp, guided_window=0.0), False, False),
-            "pnp, keypoints undistorted": (pnp, True, True)})
+            "pnp, no two-view refinement": (replace(pnp, bundle_adjustment=False), True, "plain"),
+            "pnp, no guided matching": (replace(pnp, guided_window=0.0), False, "plain"),
+            "pnp, keypoints undistorted": (pnp, True, "undistorted"),
+            "pnp, depth as mask (RTAB-Map's Mem/DepthAsMask)": (pnp, True, "depth as mask")})
+    as_mask = params.with_value("features.depth_as_mask", True)
     speeds = {}
     rows = {name: [] for name in estimators}
     pairs_out = []
@@ -341,10 +346,13 @@ def loop_pairs(quick: bool) -> dict:
             key = f"{name}/{case.name}"
             pair = loop_pair(case, params)
             pair["images"] = photometric_optimum(pair)
-            undistorted = {**loop_pair(case, params, undistort=True), "images": pair["images"]} if not quick else None
+            variants = {"plain": pair}
+            if not quick:
+                variants["undistorted"] = {**loop_pair(case, params, undistort=True), "images": pair["images"]}
+                variants["depth as mask"] = {**loop_pair(case, as_mask), "images": pair["images"]}
             row = {"pair": key, "angular_speed_deg_s": speeds.get(key)}
-            for est, (reg_params, with_descriptors, undistort) in estimators.items():
-                row[est] = _register_row(undistorted if undistort else pair, reg_params, with_descriptors)
+            for est, (reg_params, with_descriptors, variant) in estimators.items():
+                row[est] = _register_row(variants[variant], reg_params, with_descriptors)
                 rows[est].append({**row[est], "set": name})
             t_img, r_img = pose_error(pair["images"], pair["truth"])
             row["images_vs_truth"] = {"translation_error_cm": 100 * t_img, "rotation_error_deg": r_img}

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -172,11 +173,16 @@ class FeatureExtractor:
         if params.detector == "sift":
             self._sift = cv2.SIFT_create(nfeatures=params.max_features)
 
-    def extract(self, image: np.ndarray) -> Features:
+    def extract(self, image: np.ndarray, depth_m: Optional[np.ndarray] = None) -> Features:
         """Features of an image (Alg. 2 lines 2-3).
 
         Args:
             image: HxWx3 uint8 RGB or HxW uint8 grey.
+            depth_m: its depth image (m, NaN or 0 invalid; registered to it, any size of the same
+                aspect ratio), or None. With ``depth_as_mask`` features are detected only where the
+                depth is valid and within ``min_depth``..``max_depth`` (RTAB-Map's Mem/DepthAsMask,
+                Kp/MinDepth, Kp/MaxDepth); without it (the default here), features outside those
+                depths are dropped when either is set.
 
         Returns:
             :class:`Features`, strongest first, all inside the region of interest.
@@ -186,11 +192,34 @@ class FeatureExtractor:
         """
         gray = to_gray(image)
         mask = self._detection_mask(gray.shape)
+        params = self.params
+        uses_depth = params.depth_as_mask or params.min_depth > 0 or params.max_depth > 0
+        in_depth = self._depth_mask(depth_m, gray.shape) if depth_m is not None and uses_depth else None
+        if in_depth is not None and params.depth_as_mask:
+            mask &= in_depth
         if self.params.roll_normalization:
             roll, ratio = estimate_roll(gray)
             if ROLL_MIN_DEG <= abs(roll) <= ROLL_MAX_DEG and ratio >= ROLL_MIN_PEAK_RATIO:
                 return self._extract_rotated(gray, mask, roll)
-        return self._extract(gray, mask)
+        features = self._extract(gray, mask)
+        if in_depth is not None and not params.depth_as_mask:   # the limits, on the features found
+            rows = np.clip(np.rint(features.keypoints[:, 1]).astype(np.int64), 0, gray.shape[0] - 1)
+            cols = np.clip(np.rint(features.keypoints[:, 0]).astype(np.int64), 0, gray.shape[1] - 1)
+            keep = in_depth[rows, cols] > 0
+            features = Features(features.keypoints[keep], features.descriptors[keep], features.responses[keep])
+        return features
+
+    def _depth_mask(self, depth_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """uint8 mask (HxW of the image), 255 where the depth is valid and within min..max depth."""
+        depth = np.asarray(depth_m, dtype=np.float32)
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(depth) & (depth > self.params.min_depth)
+            if self.params.max_depth > 0:
+                valid &= depth <= self.params.max_depth
+        mask = valid.astype(np.uint8) * 255
+        if mask.shape != shape:   # depth registered at another size (same aspect ratio): scaled
+            mask = cv2.resize(mask, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
+        return mask
 
     def _extract_rotated(self, gray: np.ndarray, mask: np.ndarray, roll_deg: float) -> Features:
         """Features of the image rotated by ``roll_deg`` about its centre (its edges brought upright),

@@ -70,6 +70,17 @@ class FeatureParams:
         "match. Lip6Outdoor's third walk is held rolled 15-25 degrees: recall at 100 % precision 0.761 -> 0.815 "
         "(upscaled 2x 0.745 -> 0.861), RTAB-Map's 84 images unchanged; worst set make_sequence 240x192, "
         "precision 0.905 -> 0.895 (issue 48's ablation, bench/bench_lcd.py)")
+    depth_as_mask: bool = _p(
+        False, "With a depth image (SLAM): detect features only where its depth is valid and within "
+        "min_depth..max_depth (RTAB-Map's Mem/DepthAsMask, true in RTAB-Map). Not the default here: on the "
+        "simulator's seed 4242 it made session 2 merge onto a look-alike place 27.7 m away (7 wrong loop "
+        "closures kept, ATE 13.3 m against 0.019 m); on the real fr1 loop pairs 11 -> 14 accepted, 5 -> 11 "
+        "off by more than 3 cm / 1.5 deg; on the real fr1 recording the same yardstick either way "
+        "(bench/bench_slam.py, bench/bench_registration.py; docs/benchmarks.md)")
+    min_depth: float = _p(0.0, "Features only where the depth is above this (RTAB-Map's Kp/MinDepth; 0 = none; "
+                          "through depth_as_mask, else the features found are filtered)", "m")
+    max_depth: float = _p(0.0, "Features only where the depth is below this (RTAB-Map's Kp/MaxDepth; 0 = no "
+                          "limit; through depth_as_mask, else the features found are filtered)", "m")
     roi_ratios: tuple[float, float, float, float] = _p(
         (0.0, 0.0, 0.0, 0.0),
         "Region of interest as ratios of the image cut off at left, right, top, bottom "
@@ -82,6 +93,9 @@ class FeatureParams:
                "one of gftt_orb, orb, sift")
         _check(self.max_features >= 0, "features.max_features", self.max_features, ">= 0")
         _check(self.gftt_min_distance_px >= 0.0, "features.gftt_min_distance_px", self.gftt_min_distance_px, ">= 0")
+        _check(self.min_depth >= 0.0, "features.min_depth", self.min_depth, ">= 0")
+        _check(self.max_depth == 0.0 or self.max_depth > self.min_depth, "features.max_depth", self.max_depth,
+               f"0 (no limit) or above features.min_depth ({self.min_depth})")
         _check(len(self.roi_ratios) == 4 and all(0.0 <= r < 1.0 for r in self.roi_ratios)
                and self.roi_ratios[0] + self.roi_ratios[1] < 1.0
                and self.roi_ratios[2] + self.roi_ratios[3] < 1.0,
@@ -730,6 +744,9 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Rtabmap/LoopThr": ("bayes.loop_threshold", float),
     "Bayes/VirtualPlacePriorThr": ("bayes.virtual_place_prior", float),
     "Kp/NndrRatio": ("vocabulary.nndr", float),
+    "Kp/MinDepth": ("features.min_depth", float),
+    "Kp/MaxDepth": ("features.max_depth", float),
+    "Mem/DepthAsMask": ("features.depth_as_mask", lambda v: _to_bool("Mem/DepthAsMask", v)),
     "Kp/NNStrategy": ("vocabulary.index", lambda v: _NN_STRATEGIES.get(int(v), f"Kp/NNStrategy {v}")),
     "Kp/NewWordsComparedTogether": ("vocabulary.new_words_compared_together",
                                     lambda v: _to_bool("Kp/NewWordsComparedTogether", v)),

@@ -488,10 +488,11 @@ class Rtabmap:
 
 
 def frame_features(extractor: FeatureExtractor, frame: SensorFrame) -> Features:
-    """The features of ``frame``'s RGB image (none without one): Alg. 2 lines 2-3."""
+    """The features of ``frame``'s RGB image (none without one), detected where its depth is valid
+    when it has one (FeatureParams.depth_as_mask): Alg. 2 lines 2-3."""
     if frame.rgb is None:
         return extractor.empty()
-    return extractor.extract(frame.rgb)
+    return extractor.extract(frame.rgb, frame.depth_m)
 
 
 def _pinhole_keypoints(features: Features, frame: SensorFrame) -> np.ndarray:

@@ -232,7 +232,8 @@ class StoredFeatures(FeatureExtractor):
         with self._lock:
             self._pending.pop(id(rgb), None)
 
-    def extract(self, image: np.ndarray) -> Features:
+    def extract(self, image: np.ndarray, depth_m: Optional[np.ndarray] = None) -> Features:
+        """The features registered for ``image`` (``depth_m`` plays no part: they were found once)."""
         with self._lock:
             entry = self._pending.pop(id(image), None)
         if entry is None or entry[0] is not image:

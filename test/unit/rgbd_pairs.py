@@ -41,7 +41,7 @@ def product_signatures(folder, params: Params):
     for node, which in ((1, "prev"), (2, "curr")):
         bgr = cv2.imread(str(folder / f"img_{which}.png"))
         _, depth, pose = load_tum(folder, which)
-        features = extractor.extract(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+        features = extractor.extract(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), depth)
         word_ids, _ = vocabulary.quantize(features.descriptors)
         made.append(Signature(node, 1, 0, word_ids, features.keypoints, words_3d(features.keypoints, depth, camera),
                               camera=camera))

@@ -8,7 +8,7 @@ import pytest
 
 from rtabmap_ros2.core.features import Features, FeatureExtractor, roi_bounds
 from rtabmap_ros2.core.params import FeatureParams
-from rtabmap_ros2.errors import SensorDataError
+from rtabmap_ros2.errors import ParameterError, SensorDataError
 
 DETECTORS = ("gftt_orb", "orb", "sift")
 
@@ -147,3 +147,32 @@ def test_small_real_image_holds_max_features(shared_data):
     gaps = np.linalg.norm(features.keypoints[:, None] - features.keypoints[None], axis=2)
     np.fill_diagonal(gaps, np.inf)
     assert gaps.min() >= FeatureParams().gftt_min_distance_px - 1e-3
+
+
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_features_only_where_the_depth_is_valid_and_within_its_limits(textured, detector):
+    """RTAB-Map's Mem/DepthAsMask, Kp/MinDepth, Kp/MaxDepth: with depth_as_mask the features come from
+    where the depth image is valid and within the limits (registered at half the size too); without
+    it (the default) the depth changes nothing unless a limit is set, which drops the features found
+    outside it."""
+    rows = np.arange(480, dtype=np.float32)[:, None]
+    depth = np.broadcast_to(0.5 + 5.0 * rows / 480, (480, 640)).copy()   # 0.5 m at the top, 5.5 m at the bottom
+    depth[:, :320] = np.nan                                               # no depth on the left half
+    everywhere = FeatureExtractor(FeatureParams(detector=detector)).extract(textured)
+    assert (everywhere.keypoints[:, 0] < 300).any()
+    default = FeatureExtractor(FeatureParams(detector=detector)).extract(textured, depth)
+    np.testing.assert_array_equal(default.keypoints, everywhere.keypoints)
+    as_mask = FeatureParams(detector=detector, depth_as_mask=True)
+    masked = FeatureExtractor(as_mask).extract(textured, depth)
+    assert len(masked) > 50 and (masked.keypoints[:, 0] >= 319).all()
+    half = cv2.resize(depth, (320, 240), interpolation=cv2.INTER_NEAREST)
+    assert (FeatureExtractor(as_mask).extract(textured, half).keypoints[:, 0] >= 318).all()
+    limited = FeatureParams(detector=detector, depth_as_mask=True, min_depth=1.5, max_depth=4.0)
+    within = FeatureExtractor(limited).extract(textured, depth)
+    depth_at = depth[np.rint(within.keypoints[:, 1]).astype(int), np.rint(within.keypoints[:, 0]).astype(int)]
+    assert len(within) > 30 and (depth_at > 1.45).all() and (depth_at < 4.05).all()
+    filtered = FeatureExtractor(FeatureParams(detector=detector, max_depth=4.0)).extract(textured, depth)
+    depth_at = depth[np.rint(filtered.keypoints[:, 1]).astype(int), np.rint(filtered.keypoints[:, 0]).astype(int)]
+    assert 0 < len(filtered) < len(everywhere) and (depth_at < 4.05).all()
+    with pytest.raises(ParameterError, match="features.max_depth"):
+        FeatureParams(min_depth=2.0, max_depth=1.0)

@@ -32,10 +32,10 @@ class GatedExtractor:
         self.gate = gate
         self.extracted = 0
 
-    def extract(self, image):
+    def extract(self, image, depth_m=None):
         assert self.gate.wait(TIMEOUT_S)
         self.extracted += 1
-        return self.inner.extract(image)
+        return self.inner.extract(image, depth_m)
 
     def empty(self):
         return self.inner.empty()
@@ -54,7 +54,7 @@ def test_features_extracted_ahead_are_those_the_worker_would_extract():
             item = queue.pop()
             assert item.frame is f
             got = queue.features(item, mine)
-            expected = mine.extract(f.rgb)
+            expected = mine.extract(f.rgb, f.depth_m)
             np.testing.assert_array_equal(got.descriptors, expected.descriptors)
             np.testing.assert_array_equal(got.keypoints, expected.keypoints)
         assert queue.pop() is None
