@@ -102,6 +102,7 @@ class GridAccumulator:
     def __init__(self, params: GridParams) -> None:
         self.resolution = params.resolution
         self.range_max = params.range_max
+        self.range_min = params.range_min
         self._origin_cell = np.zeros(2, np.int64)  # cell index of array element (0, 0)
         self._anchor_cell: np.ndarray | None = None   # _origin_cell at the first scan (see add)
         self._hits = np.zeros((0, 0), np.int32)
@@ -114,7 +115,7 @@ class GridAccumulator:
     def add(self, T_map_base: np.ndarray, scan: LaserScan, weight: int = 1) -> None:
         """Ray-cast one scan taken at ``T_map_base`` (4x4) into the counts; ``weight`` -1 takes
         back a scan added before at the same pose (the counts are sums: exactly)."""
-        self._add_beams(*_beams_map(T_map_base, scan, self.range_max), weight)
+        self._add_beams(*_beams_map(T_map_base, scan, self.range_max, self.range_min), weight)
 
     def add_depth(self, cells: "DepthCells", weight: int = 1) -> None:
         """Cast one depth image's cells (:func:`depth_cells`): a beam from the camera to each
@@ -282,7 +283,7 @@ def depth_points(depth_m: np.ndarray, camera: CameraModel, params: GridParams) -
     Args:
         depth_m: HxW float32 depth (m), NaN or 0 invalid, registered to ``camera``.
         camera: pinhole model (``T_base_camera`` to the optical frame).
-        params: resolution, range_max (depth limit, 0 = none) and depth_decimation.
+        params: resolution, range_min and range_max (depth limits, 0 = none) and depth_decimation.
     """
     step = params.depth_decimation
     d = np.asarray(depth_m)[::step, ::step]
@@ -291,6 +292,8 @@ def depth_points(depth_m: np.ndarray, camera: CameraModel, params: GridParams) -
         valid = np.isfinite(d) & (d > 0)
         if params.range_max > 0:
             valid &= d <= params.range_max
+        if params.range_min > 0:
+            valid &= d >= params.range_min
     if depth_m.shape != (camera.height, camera.width):
         camera = camera.scaled(depth_m.shape[1], depth_m.shape[0])
     T = camera.T_base_camera
@@ -515,12 +518,13 @@ def _beam_samples(origins: np.ndarray, vec: np.ndarray, n_samples: np.ndarray) -
     return beam, points
 
 
-def _beams_map(T_map_base: np.ndarray, scan: LaserScan, range_max: float):
-    """Beam origins (N,2), ends (N,2) in the map frame and whether each ended on a return."""
+def _beams_map(T_map_base: np.ndarray, scan: LaserScan, range_max: float, range_min: float = 0.0):
+    """Beam origins (N,2), ends (N,2) in the map frame and whether each ended on a return; returns
+    nearer than the scan's range_min or ``range_min`` are left out (no information)."""
     r = np.asarray(scan.ranges, dtype=np.float64)
     limit = scan.range_max if range_max <= 0 else min(range_max, scan.range_max)
     with np.errstate(invalid="ignore"):
-        returned = np.isfinite(r) & (r >= scan.range_min) & (r < limit)
+        returned = np.isfinite(r) & (r >= max(scan.range_min, range_min)) & (r < limit)
         no_return = ~np.isfinite(r) | (r >= limit)
     use = returned | no_return
     ranges = np.where(returned, r, limit)[use]

@@ -485,6 +485,9 @@ class GridParams:
         "return (0 = the scan's range_max; RTAB-Map's Grid/RangeMax default: farther returns are "
         "noisier and cost ray casting time); depth grid: depth points up to this depth (RTAB-Map's Grid/RangeMax, "
         "for both)", "m")
+    range_min: float = _p(
+        0.0, "Ignore laser returns and depth points nearer than this: the robot's own body in view (RTAB-Map's "
+        "Grid/RangeMin; 0 = the scan's range_min only)", "m")
     cloud_voxel_size: float = _p(0.05, "Voxel size of the assembled RGB-D point cloud", "m")
     cloud_decimation: int = _p(4, "Use every n-th depth pixel in each direction for the point cloud", "px")
     sensor: str = _p(
@@ -511,6 +514,8 @@ class GridParams:
     def __post_init__(self) -> None:
         _check(self.resolution > 0, "grid.resolution", self.resolution, "> 0")
         _check(self.range_max >= 0, "grid.range_max", self.range_max, ">= 0")
+        _check(self.range_min >= 0 and (self.range_max == 0 or self.range_min < self.range_max), "grid.range_min",
+               self.range_min, f">= 0 and below grid.range_max ({self.range_max})")
         _check(self.sensor in GRID_SENSORS, "grid.sensor", self.sensor, " or ".join(GRID_SENSORS))
         _check(self.depth_decimation >= 1, "grid.depth_decimation", self.depth_decimation, ">= 1")
         _check(self.max_ground_height >= 0, "grid.max_ground_height", self.max_ground_height, ">= 0")
@@ -785,6 +790,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "RGBD/AngularUpdate": ("graph.angular_update", float),
     "Grid/CellSize": ("grid.resolution", float),
     "Grid/RangeMax": ("grid.range_max", float),
+    "Grid/RangeMin": ("grid.range_min", float),
     "Grid/Sensor": ("grid.sensor", lambda v: _GRID_SENSORS.get(int(v), f"Grid/Sensor {v}")),
     "Grid/FromDepth": ("grid.sensor", lambda v: "depth" if _to_bool("Grid/FromDepth", v) else "laser"),
     "Grid/DepthDecimation": ("grid.depth_decimation", int),

@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import cv2
 import numpy as np
+import pytest
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.grid import (FREE, OCCUPIED, UNKNOWN, GridAccumulator, assemble_cloud, build_grid,
@@ -15,6 +16,7 @@ from rtabmap_ros2.core.local_grid import LocalGrid
 from rtabmap_ros2.io.bag import DEFAULT_T_BASE_CAMERA
 from rtabmap_ros2.core.params import GridParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan
+from rtabmap_ros2.errors import ParameterError
 
 HALF = 2.0  # half side of the square room (m)
 RES = 0.05
@@ -331,3 +333,22 @@ def test_local_grid_of_depth_points_follows_moved_poses_exactly():
     both = LocalGrid(params).update({1: poses[1]}, {1: room_scan(0.0, 0.3)}, depth={1: views[1]})
     scan_only = LocalGrid(params).update({1: poses[1]}, {1: room_scan(0.0, 0.3)})
     assert (both.data != UNKNOWN).sum() >= (scan_only.data != UNKNOWN).sum()
+
+
+def test_returns_nearer_than_grid_range_min_are_left_out():
+    """Grid/RangeMin: the robot's own body in a laser's or a camera's view is no obstacle."""
+    scan = room_scan(0.0, 0.0)
+    ranges = np.array(scan.ranges, dtype=np.float32)
+    ranges[:60] = 0.2                         # a mast 0.2 m behind the laser hides 30 degrees of the room
+    body = LaserScan(ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max)
+    mast = np.array([[0.2 * np.cos(scan.angles[30]), 0.2 * np.sin(scan.angles[30])]])
+    assert build_grid({1: transforms.identity()}, {1: body}, GridParams(resolution=RES)).value_at(mast)[0] == OCCUPIED
+    without = build_grid({1: transforms.identity()}, {1: body}, GridParams(resolution=RES, range_min=0.3))
+    assert without.value_at(mast)[0] != OCCUPIED
+    assert (without.value_at(np.array([[HALF, 0.0], [0.0, HALF]])) == OCCUPIED).all()   # the walls stay
+    T = transforms.from_xy_yaw(0.0, 0.0, 0.0, z=CAMERA_HEIGHT)
+    near = depth_points(wall_and_floor_depth(), DEPTH_CAMERA, GridParams(resolution=RES, range_min=1.8))
+    assert len(near.points) and (near.points[:, 0] >= 1.79).all()      # only the wall and the floor before it
+    assert len(points_cells(T, near, GridParams(resolution=RES)).obstacles_xy)
+    with pytest.raises(ParameterError, match="grid.range_min"):
+        GridParams(range_min=6.0, range_max=5.0)
