@@ -802,6 +802,7 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "detection_rate": ("sync.rate_hz", float),
     "approx_sync": ("sync.approx_sync", lambda v: _to_bool("approx_sync", v)),
     "sync_queue_size": ("sync.queue_size", int),
+    "queue_size": ("sync.queue_size", int),   # rtabmap_ros' name before sync_queue_size (deprecated there)
     "approx_sync_max_interval": ("sync.tolerance_s", float),
 }
 

@@ -81,6 +81,12 @@ def test_one_detector_for_detect_map_and_the_node():
     ("Grid/MaxObstacleHeight", "1.5", "grid", "max_obstacle_height", 1.5),
     ("Grid/MaxGroundHeight", "0.1", "grid", "max_ground_height", 0.1),
     ("Grid/MinGroundHeight", "-0.5", "grid", "min_ground_height", -0.5),
+    ("Grid/RangeMin", "0.3", "grid", "range_min", 0.3),
+    ("Mem/DepthAsMask", "true", "features", "depth_as_mask", True),
+    ("Kp/MinDepth", "0.4", "features", "min_depth", 0.4),
+    ("Kp/MaxDepth", "4", "features", "max_depth", 4.0),
+    ("queue_size", "20", "sync", "queue_size", 20),
+    ("sync_queue_size", 15, "sync", "queue_size", 15),
 ])
 def test_rtabmap_aliases_map_to_typed_fields(alias, value, section, field, expected):
     p = Params().with_value(alias, value)
