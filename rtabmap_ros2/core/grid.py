@@ -13,8 +13,9 @@ open areas appear free. RTAB-Map does the same with ``Grid/RayTracing`` and its
 ``Grid/RangeMax``.
 
 Depth images (RTAB-Map's ``Grid/Sensor`` 1, its LocalGridMaker with the passthrough segmentation):
-every ``depth_decimation``-th pixel within ``range_max`` is placed in the map frame at the node's
-pose; points at or below the ground height (map-frame z) are ground, those above it (up to
+every ``depth_decimation``-th pixel within ``range_min``..``range_max`` (one per cube of half a
+cell: :func:`depth_points`, what a node keeps for the live grid) is placed in the map frame at the
+node's pose; points at or below the ground height (map-frame z) are ground, those above it (up to
 ``max_obstacle_height``) obstacles. Projected on the ground plane, one beam per cell runs from the
 camera to each obstacle cell (a hit at its end) and to each ground cell (free up to and including
 it), cast like the laser's (:func:`depth_cells`, :meth:`GridAccumulator.add_depth`).
@@ -262,8 +263,8 @@ class DepthPoints:
     hold (RTAB-Map keeps a node's local grid with it the same way).
 
     Attributes:
-        points: (N,3) float32 points of every ``depth_decimation``-th pixel with a valid depth up to
-            ``range_max``, one per cube of :data:`DEPTH_POINT_CELL_FRACTION` of a grid cell.
+        points: (N,3) float32 points of every ``depth_decimation``-th pixel with a valid depth within
+            ``range_min``..``range_max``, one per cube of :data:`DEPTH_POINT_CELL_FRACTION` of a grid cell.
         camera_xyz: (3,) the camera centre.
     """
 
