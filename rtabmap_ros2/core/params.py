@@ -338,6 +338,13 @@ class RegistrationParams:
         "Vis/CorGuessWinSize, here with the first estimate as the guess; 0 = the shared words only, as "
         "RTAB-Map's loop closures). On the 24 real TUM loop pairs 16 accepted instead of 9, as near the "
         "images' own optimum (bench/bench_registration.py)", "px")
+    min_depth: float = _p(
+        0.0, "Loop closure transforms from the words whose depth (along the camera's axis) is above this only, "
+        "on both nodes (RTAB-Map's Vis/MinDepth; 0 = none)", "m")
+    max_depth: float = _p(
+        0.0, "Loop closure transforms from the words whose depth is below this only, on both nodes: a far "
+        "point's depth is noisier (RTAB-Map's Vis/MaxDepth; 0 = no limit; with either limit, words without "
+        "depth are left out too, as RTAB-Map's)", "m")
     planar: bool = _p(
         False, "Robot moves on a plane: registration and optimisation keep x, y and yaw only (RTAB-Map's "
         "Reg/Force3DoF, false by default as there: 6 DoF; config/rtabmap.yaml sets it for its wheeled robot "
@@ -372,6 +379,9 @@ class RegistrationParams:
                ">= 0")
         _check(self.pnp_max_variance >= 0, "registration.pnp_max_variance", self.pnp_max_variance, ">= 0")
         _check(self.guided_window >= 0, "registration.guided_window", self.guided_window, ">= 0")
+        _check(self.min_depth >= 0, "registration.min_depth", self.min_depth, ">= 0")
+        _check(self.max_depth == 0 or self.max_depth > self.min_depth, "registration.max_depth", self.max_depth,
+               f"0 (no limit) or above registration.min_depth ({self.min_depth})")
         _check(self.icp_max_correspondence_distance > 0, "registration.icp_max_correspondence_distance",
                self.icp_max_correspondence_distance, "> 0")
         _check(self.icp_iterations >= 1, "registration.icp_iterations", self.icp_iterations, ">= 1")
@@ -777,6 +787,8 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Vis/PnPMaxVariance": ("registration.pnp_max_variance", float),
     "Vis/BundleAdjustment": ("registration.bundle_adjustment", lambda v: int(v) > 0),
     "Vis/CorGuessWinSize": ("registration.guided_window", float),
+    "Vis/MinDepth": ("registration.min_depth", float),
+    "Vis/MaxDepth": ("registration.max_depth", float),
     "Reg/Force3DoF": ("registration.planar", lambda v: _to_bool("Reg/Force3DoF", v)),
     "RGBD/NeighborLinkRefining": ("registration.neighbor_link_refining",
                                   lambda v: _to_bool("RGBD/NeighborLinkRefining", v)),

@@ -28,7 +28,7 @@ node's base frame (``from_points ≈ T_from_to @ to_points``); it equals
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -489,6 +489,10 @@ def register(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
         RegistrationError: fewer than ``params.min_inliers`` inliers, or ICP refinement rejected.
     """
     icp = params.icp_refine and from_sig.scan is not None and to_sig.scan is not None
+    if params.min_depth > 0 or params.max_depth > 0:
+        (from_sig, from_kept), (to_sig, to_kept) = (words_within_depth(sig, params) for sig in (from_sig, to_sig))
+        if descriptors is not None:
+            descriptors = (descriptors[0][from_kept], descriptors[1][to_kept])
     if uses_pnp(params, icp) and from_sig.camera is not None and to_sig.camera is not None:
         # Loop closure transform by PnP (RTAB-Map's Vis/EstimationType 1).
         result = register_pnp(from_sig, to_sig, params, descriptors)
@@ -497,6 +501,23 @@ def register(from_sig: Signature, to_sig: Signature, params: RegistrationParams,
     if icp:
         result = _refine_with_icp(from_sig, to_sig, result, params)
     return result
+
+
+def words_within_depth(sig: Signature, params: RegistrationParams) -> tuple[Signature, np.ndarray]:
+    """``sig`` with only its words whose depth (along the camera's optical axis) is within
+    ``params.min_depth``..``params.max_depth`` (RTAB-Map's Vis/MinDepth, Vis/MaxDepth: words without
+    depth go too), and the kept features' indices."""
+    points = np.asarray(sig.points3d, dtype=np.float64).reshape(-1, 3)
+    if sig.camera is not None:
+        T = transforms.inverse(sig.camera.T_base_camera)
+        points = points @ T[:3, :3].T + T[:3, 3]
+    depth = points[:, 2] if sig.camera is not None else np.linalg.norm(points, axis=1)
+    with np.errstate(invalid="ignore"):
+        keep = np.isfinite(depth) & (depth > params.min_depth)
+        if params.max_depth > 0:
+            keep &= depth <= params.max_depth
+    kept = np.flatnonzero(keep)
+    return replace(sig, word_ids=sig.word_ids[kept], keypoints=sig.keypoints[kept], points3d=sig.points3d[kept]), kept
 
 
 def uses_pnp(params: RegistrationParams, icp_refined: bool) -> bool:

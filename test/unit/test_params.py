@@ -85,6 +85,8 @@ def test_one_detector_for_detect_map_and_the_node():
     ("Mem/DepthAsMask", "true", "features", "depth_as_mask", True),
     ("Kp/MinDepth", "0.4", "features", "min_depth", 0.4),
     ("Kp/MaxDepth", "4", "features", "max_depth", 4.0),
+    ("Vis/MinDepth", "0.3", "registration", "min_depth", 0.3),
+    ("Vis/MaxDepth", "4.0", "registration", "max_depth", 4.0),
     ("queue_size", "20", "sync", "queue_size", 20),
     ("sync_queue_size", 15, "sync", "queue_size", 15),
 ])

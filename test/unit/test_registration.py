@@ -17,7 +17,7 @@ from rtabmap_ros2.core.features import FeatureExtractor
 from rtabmap_ros2.core.params import Params, RegistrationParams, default_config_path
 from rtabmap_ros2.core.icp import icp_2d
 from rtabmap_ros2.core.registration import (epipolar_check, matched_pairs, ransac_rigid, register, word_pairs,
-                                            words_3d)
+                                            words_3d, words_within_depth)
 from rtabmap_ros2.core.sensor import CameraModel
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.core.vocabulary import Vocabulary
@@ -285,6 +285,25 @@ def test_pnp_loop_closure_on_real_hand_held_pairs_is_within_the_issue_tolerance(
     sigma_t = 1 / np.sqrt(reg.information[:3, :3].diagonal().min())
     sigma_r = np.degrees(1 / np.sqrt(reg.information[3:, 3:].diagonal().min()))
     assert t_err < 3 * sigma_t and r_err < 3 * sigma_r
+
+
+def test_vis_depth_limits_register_from_the_words_within_them(shared_data, slam_params):
+    """RTAB-Map's Vis/MinDepth, Vis/MaxDepth: the transform comes from the words within the limits
+    only (both nodes; words without depth left out too): a limit beyond the scene gives the slow pair
+    within a centimetre still, one in front of it leaves too few words."""
+    new, old, descriptors, truth = product_signatures(shared_data / "rgbd" / "tum_fr1_xyz_pairs" / "case_1",
+                                                      slam_params)
+    within = replace(slam_params.registration, min_depth=0.3, max_depth=8.0)
+    kept, indices = words_within_depth(new, within)
+    depth = (kept.points3d @ np.linalg.inv(new.camera.T_base_camera)[:3, :3].T
+             + np.linalg.inv(new.camera.T_base_camera)[:3, 3])[:, 2]
+    assert 0 < len(kept.word_ids) < len(new.word_ids) and ((depth > 0.3) & (depth <= 8.0)).all()
+    np.testing.assert_array_equal(kept.word_ids, new.word_ids[indices])
+    reg = register(new, old, within, descriptors=descriptors)
+    t_err, r_err = _errors(reg.T_from_to, truth)
+    assert t_err < 0.01 and r_err < 0.5, (t_err, r_err)
+    with pytest.raises(RegistrationError):
+        register(new, old, replace(slam_params.registration, max_depth=0.4), descriptors=descriptors)
 
 
 def test_guided_matching_finds_the_matches_the_shared_words_missed(shared_data, slam_params):
