@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from rtabmap_ros2.core.params import FeatureParams
+from rtabmap_ros2.core.sensor import depth_in_range
 from rtabmap_ros2.errors import SensorDataError
 
 logger = logging.getLogger(__name__)
@@ -197,7 +198,7 @@ class FeatureExtractor:
         in_depth = self._depth_mask(depth_m, gray.shape) if depth_m is not None and uses_depth else None
         if in_depth is not None and params.depth_as_mask:
             mask &= in_depth
-        if self.params.roll_normalization:
+        if params.roll_normalization:
             roll, ratio = estimate_roll(gray)
             if ROLL_MIN_DEG <= abs(roll) <= ROLL_MAX_DEG and ratio >= ROLL_MIN_PEAK_RATIO:
                 return self._extract_rotated(gray, mask, roll)
@@ -211,11 +212,7 @@ class FeatureExtractor:
 
     def _depth_mask(self, depth_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         """uint8 mask (HxW of the image), 255 where the depth is valid and within min..max depth."""
-        depth = np.asarray(depth_m, dtype=np.float32)
-        with np.errstate(invalid="ignore"):
-            valid = np.isfinite(depth) & (depth > self.params.min_depth)
-            if self.params.max_depth > 0:
-                valid &= depth <= self.params.max_depth
+        valid = depth_in_range(np.asarray(depth_m, dtype=np.float32), self.params.min_depth, self.params.max_depth)
         mask = valid.astype(np.uint8) * 255
         if mask.shape != shape:   # depth registered at another size (same aspect ratio): scaled
             mask = cv2.resize(mask, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)

@@ -40,7 +40,7 @@ from rtabmap_ros2.core.compiled import jit
 from rtabmap_ros2.core.grid import voxel_filter
 from rtabmap_ros2.core.icp import icp_fit
 from rtabmap_ros2.core.params import RegistrationParams
-from rtabmap_ros2.core.sensor import CameraModel, LaserScan
+from rtabmap_ros2.core.sensor import CameraModel, LaserScan, depth_in_range
 from rtabmap_ros2.core.signature import Signature
 from rtabmap_ros2.errors import RegistrationError
 
@@ -512,11 +512,7 @@ def words_within_depth(sig: Signature, params: RegistrationParams) -> tuple[Sign
         T = transforms.inverse(sig.camera.T_base_camera)
         points = points @ T[:3, :3].T + T[:3, 3]
     depth = points[:, 2] if sig.camera is not None else np.linalg.norm(points, axis=1)
-    with np.errstate(invalid="ignore"):
-        keep = np.isfinite(depth) & (depth > params.min_depth)
-        if params.max_depth > 0:
-            keep &= depth <= params.max_depth
-    kept = np.flatnonzero(keep)
+    kept = np.flatnonzero(depth_in_range(depth, params.min_depth, params.max_depth))
     return replace(sig, word_ids=sig.word_ids[kept], keypoints=sig.keypoints[kept], points3d=sig.points3d[kept]), kept
 
 

@@ -82,6 +82,16 @@ class CameraModel:
                            self.T_base_camera, self.distortion)
 
 
+def depth_in_range(depth: np.ndarray, min_depth: float, max_depth: float) -> np.ndarray:
+    """Bool array of the depths (m; NaN invalid) that are finite, above ``min_depth`` and at most
+    ``max_depth`` (0 = no limit): RTAB-Map's Kp/ and Vis/ MinDepth, MaxDepth."""
+    with np.errstate(invalid="ignore"):
+        within = np.isfinite(depth) & (depth > min_depth)
+        if max_depth > 0:
+            within &= depth <= max_depth
+    return within
+
+
 @dataclass(frozen=True)
 class LaserScan:
     """A planar laser scan: ranges (N,, m, NaN/inf = no return) and its geometry."""
