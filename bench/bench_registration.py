@@ -34,7 +34,8 @@ entries are replaced).
    and at 2 Hz; per run the loop closures kept, those off the motion capture by more than 5 cm or
    3 deg, the worst, and the map's ATE against the odometry's. Images as recorded with the
    calibration's distortion in CameraInfo (tum2bag's default), rectified (``--rectify``), and as
-   recorded but with D left out (the baseline: what the map made before the distortion was read).
+   recorded but with D left out (the baseline: what the map made before the distortion was read);
+   and the images as recorded mapped with proximity detection by space (RGBD/ProximityBySpace).
 """
 
 from __future__ import annotations
@@ -105,6 +106,9 @@ RECORDING_OFF_CM, RECORDING_OFF_DEG = 5.0, 3.0
 FR1_PINHOLE = "517.306408,516.469215,318.643040,255.313989"
 RECORDING_IMAGES = {"raw, D in CameraInfo": (), "rectified": ("--rectify",),
                     "raw, D left out": ("--camera", FR1_PINHOLE)}
+# Settings of ``map`` compared on the images as recorded (tum2bag's default), each its own rows: the
+# defaults, and proximity detection by space (RTAB-Map's default, off here: graph.proximity_by_space).
+RECORDING_SETTINGS = {"": (), ", proximity by space": ("--set", "RGBD/ProximityBySpace=true")}
 
 
 def load_image(kind: str, name: str):
@@ -568,16 +572,17 @@ def _cli(*args) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, cwd=REPO)
 
 
-def _recording_run(folder: Path, work: Path, images: tuple[str, ...], seed: int, rate: float) -> dict:
-    """tum2bag + map (6 DoF) into the empty folder ``work``, then every loop closure of the database
-    judged against the motion capture."""
+def _recording_run(folder: Path, work: Path, images: tuple[str, ...], seed: int, rate: float,
+                   settings: tuple[str, ...] = ()) -> dict:
+    """tum2bag + map (6 DoF, with ``settings``) into the empty folder ``work``, then every loop closure
+    of the database judged against the motion capture."""
     from rtabmap_ros2.core.global_map import load_global_map
     from rtabmap_ros2.io.trajectory import read_tum
 
     bag, db = work / "bag", work / "map.db"
     for command in (("tum2bag", folder, "--out", bag, "--seed", seed, *RECORDING_DRIFT, *images),
                     ("map", bag, "--db", db, "--no-progress", "--set", "Reg/Force3DoF=false",
-                     "--set", f"Rtabmap/DetectionRate={rate:g}")):
+                     "--set", f"Rtabmap/DetectionRate={rate:g}", *settings)):
         done = _cli(*command)
         if done.returncode != 0:
             raise RuntimeError(f"{command[0]} failed: {done.stderr.strip().splitlines()[-1:]}")
@@ -610,9 +615,13 @@ def recording(seeds: tuple[int, ...]) -> dict:
     result = {}
     with tempfile.TemporaryDirectory() as tmp:
         folder = write_tum_folder(DATA, Path(tmp))
-        for name, images in RECORDING_IMAGES.items():
+        variants = [(name, images, ()) for name, images in RECORDING_IMAGES.items()]
+        variants += [(f"raw, D in CameraInfo{label}", (), settings) for label, settings in RECORDING_SETTINGS.items()
+                     if settings]
+        for name, images, settings in variants:
             for rate in RECORDING_RATES:
-                runs = [_recording_run(folder, Path(tempfile.mkdtemp(dir=tmp)), images, seed, rate) for seed in seeds]
+                runs = [_recording_run(folder, Path(tempfile.mkdtemp(dir=tmp)), images, seed, rate, settings)
+                        for seed in seeds]
                 result[f"{name} @ {'every frame' if rate == 0 else f'{rate:g} Hz'}"] = runs
     return result
 

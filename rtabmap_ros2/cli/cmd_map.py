@@ -86,6 +86,7 @@ class SessionSummary:
     not_moved: int = 0
     loop_intra: int = 0
     loop_inter: int = 0
+    proximity: int = 0
     rejected_online: int = 0
     wm_size: int = 0
     local_map_size: int = 0
@@ -95,7 +96,8 @@ class SessionSummary:
     def line(self) -> str:
         return (f"session {self.map_id} ({self.source}): {self.nodes} nodes from {self.frames} frames processed, "
                 f"WM {self.wm_size}, local map {self.local_map_size}, loop closures intra {self.loop_intra} "
-                f"/ inter {self.loop_inter} ({self.rejected_online} rejected while mapping), "
+                f"/ inter {self.loop_inter} ({self.rejected_online} rejected while mapping)"
+                + (f", {self.proximity} by proximity" if self.proximity else "") + ", "
                 f"max pTime {self.max_process_time_ms:.0f} ms"
                 + (f", {self.skipped} bad frames skipped" if self.skipped else "")
                 + (f", {self.not_moved} frames not added: the robot moved less than graph.linear_update / "
@@ -268,6 +270,7 @@ def _count(session: SessionSummary, stats) -> None:
     elif stats.loop_closure_type == "loop_inter":
         session.loop_inter += 1
     session.rejected_online += int(bool(stats.rejected_loop_closure_id))
+    session.proximity += stats.proximity_links
     session.wm_size = stats.wm_size
     session.local_map_size = stats.local_map_size
     session.process_times_ms.append(stats.process_time_ms)

@@ -73,8 +73,10 @@ class LocalMapper:
         self.poses: dict[int, np.ndarray] = {}
         self.links: list[Link] = []
         self.T_map_odom = transforms.identity()
-        # The frame's new loop closures, with what add_loop_closure returned to undo them.
+        # The frame's new loop closures, with what add_loop_closure returned to undo them, and the keys
+        # of those proximity detection found (graph.proximity_by_space).
         self.new_loops: list[tuple[Link, tuple[int, int, int]]] = []
+        self.proximity_keys: set[tuple[int, int]] = set()
         # Last optimised pose of every node that left the local map, in one frame that does not
         # move with the solutions ("world"): map_pose(). T_world_local: the current solution's
         # frame in it.
@@ -242,6 +244,19 @@ class LocalMapper:
             judged = judged_links(links, self.inactive_links, result.switched_off, new)
             worst = max_error_ratio(result.poses, judged, bool(self.planar), before=previous, new=new)
             if worst > limit and not only_bridges(links, [link for link, _ in fresh]):
+                nearby = [(link, before) for link, before in fresh if link.key() in self.proximity_keys]
+                if nearby and len(nearby) < len(fresh):
+                    # A proximity detection must not take the frame's appearance-based loop closure
+                    # down with it: judged again without the proximity ones.
+                    for link, before in nearby:
+                        log.info("proximity loop closure %d -> %d rejected: a link ends %.1f std devs off after "
+                                 "optimisation (> %.1f)", link.from_id, link.to_id, worst, limit)
+                        memory.undo_loop_closure(link, before)
+                    self.new_loops = [(link, before) for link, before in self.new_loops
+                                      if link.key() not in self.proximity_keys]
+                    self.proximity_keys = set()
+                    self.inactive_links = rejected_before
+                    return self.optimize_component(root)
                 for link, before in fresh:
                     log.info("loop closure %d -> %d rejected: a link ends %.1f std devs off after "
                              "optimisation (> %.1f)", link.from_id, link.to_id, worst, limit)

@@ -318,14 +318,18 @@ class Memory:
             out[loc] = n_pair / max(n_t, len(self.signatures[loc].word_ids))
         return out
 
-    def add_loop_closure(self, link: Link) -> tuple[int, int, int]:
-        """Loop closure link and weight transfer (§III-D): w_t += w_i, w_i = 0.
+    def add_loop_closure(self, link: Link, transfer_weight: bool = True) -> tuple[int, int, int]:
+        """Loop closure link and weight transfer (§III-D): w_t += w_i, w_i = 0 (not for a proximity
+        detection, ``transfer_weight`` False: the link alone, the Bayes filter did not choose it).
 
         Returns what :meth:`undo_loop_closure` needs: (w_t, w_i, last loop closure id) before.
         """
         current = self.signatures[link.from_id]
         old = self.signatures[link.to_id]
         before = (current.weight, old.weight, self.last_loop_closure_id)
+        if not transfer_weight:
+            self.add_link(link)
+            return before
         current.weight += old.weight
         old.weight = 0
         self._batch.weights[old.id] = 0

@@ -461,6 +461,26 @@ class GraphParams:
     angular_update: float = _p(
         0.0, "Minimum rotation to add a node (RTAB-Map's RGBD/AngularUpdate): see linear_update; 0 = rotation "
         "not checked. RTAB-Map's default is 0.1 rad", "rad")
+    proximity_by_space: bool = _p(
+        False, "Proximity detection by space (RTAB-Map's RGBD/ProximityBySpace, visual; core/proximity.py): each frame "
+        "also registers the new node with WM nodes the local map puts near it (within memory.local_radius and "
+        "proximity_max_graph_depth links, one per path of neighbour links, at most proximity_max_paths, the "
+        "nearest within proximity_filtering_radius and proximity_angle), for revisits the Bayes filter does not "
+        "single out; the loop closures found are judged with the frame's others (optimize_max_error). RTAB-Map's "
+        "default is true; ours is false: the simulated building's map got worse with it (ATE 0.013 -> 0.015 m, "
+        "0.022 -> 0.024), the real hand-held recording's better (0.017 -> 0.009 m every frame; docs/benchmarks.md)")
+    proximity_max_graph_depth: int = _p(
+        50, "Proximity detection: candidates within this many links of the new node "
+        "(RTAB-Map's RGBD/ProximityMaxGraphDepth; 0 = any)", "links")
+    proximity_max_paths: int = _p(
+        3, "Proximity detection: paths compared a frame, highest likelihood then most recent first "
+        "(RTAB-Map's RGBD/ProximityMaxPaths; 0 = all)", "paths")
+    proximity_filtering_radius: float = _p(
+        1.0, "Proximity detection: a path's candidate must be this near the robot, and the registered transform "
+        "this short (RTAB-Map's RGBD/ProximityPathFilteringRadius)", "m")
+    proximity_angle: float = _p(
+        45.0, "Proximity detection: a candidate's forward axis within this angle of the robot's "
+        "(RTAB-Map's RGBD/ProximityAngle; 0 = any)", "deg")
     odom_default_variance: float = _p(
         1e-3, "Variance of neighbour links when odometry has no covariance", "m^2, rad^2")
     loop_closure_variance: float = _p(1e-3, "Variance of loop closure links (before robust scaling)",
@@ -481,6 +501,12 @@ class GraphParams:
         _check(self.odom_reset_max_gap > 0, "graph.odom_reset_max_gap", self.odom_reset_max_gap, "> 0")
         _check(self.linear_update >= 0, "graph.linear_update", self.linear_update, ">= 0")
         _check(self.angular_update >= 0, "graph.angular_update", self.angular_update, ">= 0")
+        _check(self.proximity_max_graph_depth >= 0, "graph.proximity_max_graph_depth", self.proximity_max_graph_depth,
+               ">= 0")
+        _check(self.proximity_max_paths >= 0, "graph.proximity_max_paths", self.proximity_max_paths, ">= 0")
+        _check(self.proximity_filtering_radius > 0, "graph.proximity_filtering_radius",
+               self.proximity_filtering_radius, "> 0")
+        _check(0.0 <= self.proximity_angle <= 180.0, "graph.proximity_angle", self.proximity_angle, "in [0, 180]")
         _check(self.odom_default_variance > 0, "graph.odom_default_variance", self.odom_default_variance, "> 0")
         _check(self.loop_closure_variance > 0, "graph.loop_closure_variance", self.loop_closure_variance, "> 0")
 
@@ -638,7 +664,7 @@ class Params:
         """Parameters from a (possibly nested, possibly ROS ``ros__parameters``) mapping.
 
         A ROS 2 parameter file is read as the node reads it: an rtabmap_ros parameter with no
-        equivalent here (``RGBD/ProximityBySpace``, ``subscribe_rgbd``, ...) is left out with one
+        equivalent here (``Reg/Strategy``, ``subscribe_rgbd``, ...) is left out with one
         warning naming them all, so an rtabmap_ros launch's file works as it is; an unknown dotted
         name (a typo of ours) is an error in any file."""
         params = base if base is not None else cls()
@@ -797,6 +823,11 @@ RTABMAP_ALIASES: dict[str, tuple[str, Any]] = {
     "Optimizer/Iterations": ("graph.iterations", int),
     "Optimizer/Robust": ("graph.robust", lambda v: _to_bool("Optimizer/Robust", v)),
     "RGBD/OptimizeMaxError": ("graph.optimize_max_error", float),
+    "RGBD/ProximityBySpace": ("graph.proximity_by_space", lambda v: _to_bool("RGBD/ProximityBySpace", v)),
+    "RGBD/ProximityMaxGraphDepth": ("graph.proximity_max_graph_depth", int),
+    "RGBD/ProximityMaxPaths": ("graph.proximity_max_paths", int),
+    "RGBD/ProximityPathFilteringRadius": ("graph.proximity_filtering_radius", float),
+    "RGBD/ProximityAngle": ("graph.proximity_angle", float),
     "RGBD/NewMapOdomChangeDistance": ("graph.odom_reset_jump", float),
     "RGBD/LinearUpdate": ("graph.linear_update", float),
     "RGBD/AngularUpdate": ("graph.angular_update", float),

@@ -40,6 +40,7 @@ from rtabmap_ros2.core.loop_validation import LoopValidator
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.optimizer import load_backend, release
 from rtabmap_ros2.core.params import Params
+from rtabmap_ros2.core.proximity import ProximitySearch, proximity_candidates
 from rtabmap_ros2.core.registration import words_3d
 from rtabmap_ros2.core.sensor import CameraModel, SensorFrame
 from rtabmap_ros2.core.sessions import REQUESTED, PlanarOdometryCheck, Sessions, odometry_information
@@ -69,6 +70,7 @@ class Rtabmap:
         if delete_existing:
             _delete_database(self.database_path)
         self.extractor = FeatureExtractor(params.features)
+        self._likelihood: dict[int, float] = {}  # this frame's raw score of each WM location (proximity detection)
         self._open()
 
     def _open(self) -> None:
@@ -125,6 +127,7 @@ class Rtabmap:
         watch.lap("features")
         t_process = time.perf_counter()
         self.local.new_loops = []
+        self.local.proximity_keys = set()
         stats = Statistics(frame_index=self.frame_index, stamp_ns=frame.stamp_ns)
         self.frame_index += 1
         stats.new_map = self._maybe_start_new_map(frame)
@@ -166,6 +169,10 @@ class Rtabmap:
                 stats.rejected_loop_closure_id = stats.loop_closure_id
                 stats.loop_closure_id = 0
                 stats.loop_closure_type = ""
+            if stats.proximity_links:  # those the optimisation kept
+                graph, inactive = self.memory.graph, self.local.inactive_links
+                stats.proximity_links = sum(graph.link(*key) is not None and key not in inactive
+                                            for key in self.local.proximity_keys)
         watch.lap("optimization")
         stats.process_time_ms = (time.perf_counter() - t_process) * 1000.0
         self._manage_memory(stats, hypothesis, watch.ms, slam=frame.T_odom_base is not None)
@@ -360,11 +367,40 @@ class Rtabmap:
                     stats.loop_closure_type = link.type.value
                 else:
                     stats.rejected_loop_closure_id = old.id
+        if self.params.graph.proximity_by_space and sig.T_odom_base is not None:
+            stats.proximity_links = self._proximity_detection(sig)
         watch.lap("verification")
         return hypothesis
 
+    def _proximity_detection(self, sig: Signature) -> int:
+        """Loop closures with the WM nodes the local map puts near the new node (core/proximity.py,
+        RTAB-Map's RGBD/ProximityBySpace), each registered as a loop closure is verified; returns how
+        many were added (judged with the frame's other loop closures by the local map's
+        optimisation)."""
+        memory, graph_params = self.memory, self.params.graph
+        pose = self.local.new_node_pose(sig.id)
+        if pose is None:
+            return 0
+        search = ProximitySearch(self.params.memory.local_radius, graph_params.proximity_max_graph_depth,
+                                 graph_params.proximity_max_paths, graph_params.proximity_filtering_radius,
+                                 graph_params.proximity_angle)
+        candidates = proximity_candidates(memory.graph, memory.signatures, memory.wm, self.local.poses, sig.id, pose,
+                                          self._likelihood, search)
+        for old_id in candidates:
+            try:
+                link = self.validator.verify(sig, memory.signatures[old_id])
+            except RegistrationError as exc:
+                log.debug("proximity %d -> %d rejected: %s", sig.id, old_id, exc)
+                continue
+            if np.linalg.norm(link.T_from_to[:3, 3]) > search.filtering_radius or not self.validator.allows(link):
+                continue
+            self.local.new_loops.append((link, memory.add_loop_closure(link, transfer_weight=False)))
+            self.local.proximity_keys.add(link.key())
+        return len(self.local.proximity_keys)
+
     def _hypothesis(self, sig: Signature, stats: Statistics) -> Hypothesis:
         candidates = self.memory.hypothesis_ids()
+        self._likelihood = {}
         if not len(candidates) or not len(sig.word_ids):
             return Hypothesis(0, 0.0, self.bayes.posterior.get(-1, 1.0))
         scores = self.memory.similarities(sig, candidates)
@@ -374,6 +410,7 @@ class Rtabmap:
         stats.likelihood_mean = float(non_null.mean()) if non_null.size else 0.0
         stats.likelihood_max = float(raw.max()) if raw.size else 0.0
         stats.likelihood_std = float(non_null.std(ddof=1)) if non_null.size > 1 else 0.0
+        self._likelihood = scores
         self.bayes.update(candidates, likelihood(scores))
         hypothesis = self.bayes.highest()
         stats.new_location_probability = hypothesis.new_location_probability

@@ -22,6 +22,7 @@ class Statistics:
     loop_closure_id: int = 0
     loop_closure_type: str = ""
     rejected_loop_closure_id: int = 0
+    proximity_links: int = 0  # loop closures added by proximity detection (graph.proximity_by_space)
     highest_hypothesis_id: int = 0
     highest_hypothesis_value: float = 0.0
     process_time_ms: float = 0.0

@@ -145,12 +145,13 @@ def test_an_rtabmap_ros_parameter_file_works_as_it_is(tmp_path, caplog):
     # naming them (the node does the same), the rest applied; a typo of a dotted name still fails.
     path = tmp_path / "rtabmap_ros.yaml"
     path.write_text("rtabmap:\n  ros__parameters:\n    frame_id: base_footprint\n    subscribe_rgbd: false\n"
-                    "    RGBD/ProximityBySpace: 'false'\n    Reg/Strategy: '1'\n    RGBD/LinearUpdate: '0.05'\n"
+                    "    RGBD/ProximityBySpace: 'true'\n    Reg/Strategy: '1'\n    RGBD/LinearUpdate: '0.05'\n"
                     "    Mem/STMSize: '12'\n")
     with caplog.at_level("WARNING"):
         p = Params.from_yaml(path)
     assert p.node.frame_id == "base_footprint" and p.memory.stm_size == 12 and p.graph.linear_update == 0.05
-    assert "RGBD/ProximityBySpace, Reg/Strategy, subscribe_rgbd ignored" in caplog.text
+    assert p.graph.proximity_by_space
+    assert "Reg/Strategy, subscribe_rgbd ignored" in caplog.text
     path.write_text("rtabmap:\n  ros__parameters:\n    memory.stm_sise: 3\n")
     with pytest.raises(ParameterError, match="stm_sise"):
         Params.from_yaml(path)
