@@ -4,7 +4,7 @@ to them: a map database made by ``rtabmap-ros2 map ... --stats CSV`` of the simu
 bags with a ground truth file).
 
 Per kind of link (appearance-based: the ``--stats`` rows' ``loop_closure_id``; proximity detection:
-the other loop closures) the signed mean error along x (the robot's axis) and y, its standard error,
+the other loop closures; neighbour links) the signed mean error along x (the robot's axis) and y, its standard error,
 the RMS, and the errors over the link's own standard deviations. Then every second appearance-based
 loop closure registered again from the database's signatures: the visual estimate alone (PnP), with
 the ICP refinement (the to node's scan matched onto the from node's), the ICP with the scans' roles
@@ -65,9 +65,17 @@ def stored_links(db: Path, appearance: set[tuple[int, int]], at: dict, params: P
         kinds[kind].append((100 * E[0, 3], 100 * E[1, 3], np.degrees(transforms.yaw_of(E))))
         sigma = 1.0 / np.sqrt(np.diag(link.information)[[0, 1, 5]])
         normalised[kind].append(np.abs([E[0, 3], E[1, 3], transforms.yaw_of(E)]) / sigma)
-    print("Loop closure links of the map against the truth (error = truth^-1 * link):")
+    kinds["neighbour"] = [
+        (100 * E[0, 3], 100 * E[1, 3], np.degrees(transforms.yaw_of(E)))
+        for link in gmap.links if not link.type.is_loop_closure
+        and gmap.stamps_ns[link.from_id] in at and gmap.stamps_ns[link.to_id] in at
+        for E in [transforms.relative(transforms.relative(at[gmap.stamps_ns[link.from_id]],
+                                                          at[gmap.stamps_ns[link.to_id]]), link.T_from_to)]]
+    print("Links of the map against the truth (error = truth^-1 * link):")
     for kind, errors in kinds.items():
-        if errors:
+        if errors and kind == "neighbour":
+            print(f"  {kind:<11} {summary(errors)}")
+        elif errors:
             median = np.median(np.array(normalised[kind]), axis=0)
             print(f"  {kind:<11} {summary(errors)}; |error| / std dev median x {median[0]:.2f}, y {median[1]:.2f}, "
                   f"yaw {median[2]:.2f}")
