@@ -473,8 +473,8 @@ class GraphParams:
         50, "Proximity detection: candidates within this many links of the new node "
         "(RTAB-Map's RGBD/ProximityMaxGraphDepth; 0 = any)", "links")
     proximity_max_paths: int = _p(
-        3, "Proximity detection: paths compared a frame, highest likelihood then most recent first "
-        "(RTAB-Map's RGBD/ProximityMaxPaths; 0 = all)", "paths")
+        3, "Proximity detection: paths whose candidate is registered a frame, highest likelihood then most "
+        "recent first (RTAB-Map's RGBD/ProximityMaxPaths; 0 = all)", "paths")
     proximity_filtering_radius: float = _p(
         1.0, "Proximity detection: a path's candidate must be this near the robot, and the registered transform "
         "this short (RTAB-Map's RGBD/ProximityPathFilteringRadius)", "m")

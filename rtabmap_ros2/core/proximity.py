@@ -9,11 +9,11 @@ words single one location out, so a place seen again a few metres on, or with th
 can go without a loop closure although odometry and the last optimisation say where the robot is.
 Here, as in RTAB-Map: the WM nodes (STM left out, as in the Bayes filter) within ``max_graph_depth``
 links of the new node and ``radius`` of its pose in the local map are split into paths (runs of
-nodes joined by neighbour links); the ``max_paths`` paths with the highest likelihood this frame
-(then the most recent) each give one candidate, the node of the path with the highest likelihood if
-it faces the way the robot does (``angle``), else the nearest that does; a candidate within
-``filtering_radius`` of the robot and not linked to it yet is registered with the new node, and the
-link is kept when its transform is within ``filtering_radius`` too. The loop closures found join the
+nodes joined by neighbour links); the paths, highest likelihood this frame first (then the most
+recent), each give at most one candidate: the path's most likely node if it faces the way the robot
+does (``angle``), else the nearest that does, if it is within ``filtering_radius`` of the robot and not
+linked to it yet; up to ``max_paths`` candidates are registered with the new node, and a link is kept
+when its transform is within ``filtering_radius`` too. The loop closures found join the
 frame's appearance-based one: the local map's optimisation and RGBD/OptimizeMaxError judge them all.
 """
 
@@ -54,10 +54,10 @@ def proximity_candidates(graph: Graph, memory_nodes: Mapping[int, object], wm: M
                   and np.linalg.norm(poses[n][:3, 3] - position) <= search.radius)
     paths = _paths(graph, near)
     ranked = sorted(((_path_key(path, likelihood), path) for path in paths), reverse=True)
-    if search.max_paths > 0:
-        ranked = ranked[:search.max_paths]
-    candidates = []
+    candidates: list[int] = []
     for (best_likelihood, best_id), path in ranked:
+        if 0 < search.max_paths <= len(candidates):
+            break  # RTAB-Map counts the paths it registers with, not those it looks at
         facing = [n for n in path if _facing(poses[n], new_pose, search.angle_deg)]
         if not facing:
             continue

@@ -61,6 +61,9 @@ def test_one_candidate_per_path_facing_the_robots_way_nearest_first():
     graph._adjacency[11].pop(10)
     graph.add_link(_link(21, 1, LinkType.LOOP_INTRA))
     assert find(graph, wm, poses, new_pose, {}, SEARCH) == [24, 5]
+    assert find(graph, wm, poses, new_pose, {}, replace(SEARCH, max_paths=1)) == [24]
+    # max_paths counts the paths that give a candidate: the first one's (24, 0.55 m) is too far here.
+    assert find(graph, wm, poses, new_pose, {}, replace(SEARCH, max_paths=1, filtering_radius=0.5)) == [5]
 
 
 def test_likelihood_picks_the_node_and_orders_the_paths():
