@@ -45,37 +45,40 @@ def appearance_pairs(stats_csv: Path) -> set[tuple[int, int]]:
                 if int(r["loop_closure_id"] or 0) > 0}
 
 
-def summary(errors: list[tuple[float, ...]]) -> str:
+def summary(errors: list[np.ndarray]) -> str:
     e = np.array(errors)
     mean, sem, rms = e.mean(axis=0), e.std(axis=0) / np.sqrt(len(e)), np.sqrt((e ** 2).mean(axis=0))
     return (f"{len(e):>4} links, x / y mean {mean[0]:+.2f} / {mean[1]:+.2f} cm (s.e. {sem[0]:.2f} / {sem[1]:.2f}), "
             f"RMS {rms[0]:.2f} / {rms[1]:.2f} cm, yaw RMS {rms[2]:.3f} deg")
 
 
+def link_error(truth: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``truth^-1 * T``'s x and y (cm) and yaw (deg)."""
+    E = transforms.relative(truth, T)
+    return np.array([100 * E[0, 3], 100 * E[1, 3], np.degrees(transforms.yaw_of(E))])
+
+
 def stored_links(db: Path, appearance: set[tuple[int, int]], at: dict, params: Params) -> None:
     gmap = load_global_map(db, params)
-    kinds: dict[str, list] = {"appearance": [], "proximity": []}
-    normalised: dict[str, list] = {"appearance": [], "proximity": []}
+    kinds: dict[str, list] = {"appearance": [], "proximity": [], "neighbour": []}
+    normalised: dict[str, list] = {kind: [] for kind in kinds}
     for link in gmap.links:
         a, b = gmap.stamps_ns[link.from_id], gmap.stamps_ns[link.to_id]
-        if not link.type.is_loop_closure or a not in at or b not in at:
+        if a not in at or b not in at:
             continue
-        kind = "appearance" if {(link.from_id, link.to_id), (link.to_id, link.from_id)} & appearance else "proximity"
-        E = transforms.relative(transforms.relative(at[a], at[b]), link.T_from_to)
-        kinds[kind].append((100 * E[0, 3], 100 * E[1, 3], np.degrees(transforms.yaw_of(E))))
+        if not link.type.is_loop_closure:
+            kind = "neighbour"
+        elif {(link.from_id, link.to_id), (link.to_id, link.from_id)} & appearance:
+            kind = "appearance"
+        else:
+            kind = "proximity"
+        error = link_error(transforms.relative(at[a], at[b]), link.T_from_to)
+        kinds[kind].append(error)
         sigma = 1.0 / np.sqrt(np.diag(link.information)[[0, 1, 5]])
-        normalised[kind].append(np.abs([E[0, 3], E[1, 3], transforms.yaw_of(E)]) / sigma)
-    kinds["neighbour"] = [
-        (100 * E[0, 3], 100 * E[1, 3], np.degrees(transforms.yaw_of(E)))
-        for link in gmap.links if not link.type.is_loop_closure
-        and gmap.stamps_ns[link.from_id] in at and gmap.stamps_ns[link.to_id] in at
-        for E in [transforms.relative(transforms.relative(at[gmap.stamps_ns[link.from_id]],
-                                                          at[gmap.stamps_ns[link.to_id]]), link.T_from_to)]]
+        normalised[kind].append(np.abs(error) / (sigma * [100.0, 100.0, 180.0 / np.pi]))
     print("Links of the map against the truth (error = truth^-1 * link):")
     for kind, errors in kinds.items():
-        if errors and kind == "neighbour":
-            print(f"  {kind:<11} {summary(errors)}")
-        elif errors:
+        if errors:
             median = np.median(np.array(normalised[kind]), axis=0)
             print(f"  {kind:<11} {summary(errors)}; |error| / std dev median x {median[0]:.2f}, y {median[1]:.2f}, "
                   f"yaw {median[2]:.2f}")
@@ -107,8 +110,7 @@ def registered_again(db_path: Path, appearance: set[tuple[int, int]], at: dict, 
             mean = transforms.from_xy_yaw((xa[0] + xb[0]) / 2, (xa[1] + xb[1]) / 2, xa[2] + yaw_difference / 2)
             truth = transforms.relative(at[new.stamp_ns], at[old.stamp_ns])
             for name, T in zip(ways, (visual.T_from_to, forward, swapped, mean)):
-                E = transforms.relative(truth, T)
-                ways[name].append((100 * E[0, 3], 100 * E[1, 3], np.degrees(transforms.yaw_of(E))))
+                ways[name].append(link_error(truth, T))
     print("Appearance-based loop closures registered again (every second one):")
     for name, errors in ways.items():
         if errors:

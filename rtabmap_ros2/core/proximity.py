@@ -50,9 +50,9 @@ def proximity_candidates(graph: Graph, memory_nodes: Mapping[int, object], wm: M
     depth_limit = search.max_graph_depth if search.max_graph_depth > 0 else len(memory_nodes) + 1
     reachable = graph.hops_from(new_id, depth_limit, allowed=memory_nodes)
     position = new_pose[:3, 3]
-    near = sorted(n for n in reachable if n != new_id and n in wm and n in poses
-                  and np.linalg.norm(poses[n][:3, 3] - position) <= search.radius)
-    paths = _paths(graph, near)
+    distance = {n: float(np.linalg.norm(poses[n][:3, 3] - position))
+                for n in reachable if n != new_id and n in wm and n in poses}
+    paths = _paths(graph, sorted(n for n, d in distance.items() if d <= search.radius))
     ranked = sorted(((_path_key(path, likelihood), path) for path in paths), reverse=True)
     candidates: list[int] = []
     for (best_likelihood, best_id), path in ranked:
@@ -64,10 +64,10 @@ def proximity_candidates(graph: Graph, memory_nodes: Mapping[int, object], wm: M
         if best_likelihood > 0.0 and best_id in facing:
             chosen = best_id
         else:
-            chosen = min(facing, key=lambda n: float(np.linalg.norm(poses[n][:3, 3] - position)))
+            chosen = min(facing, key=distance.__getitem__)
         if graph.link(new_id, chosen) is not None:
             continue
-        if np.linalg.norm(poses[chosen][:3, 3] - position) < search.filtering_radius:
+        if distance[chosen] < search.filtering_radius:
             candidates.append(chosen)
     return candidates
 

@@ -87,6 +87,11 @@ def test_one_detector_for_detect_map_and_the_node():
     ("Kp/MaxDepth", "4", "features", "max_depth", 4.0),
     ("Vis/MinDepth", "0.3", "registration", "min_depth", 0.3),
     ("Vis/MaxDepth", "4.0", "registration", "max_depth", 4.0),
+    ("RGBD/ProximityBySpace", "true", "graph", "proximity_by_space", True),
+    ("RGBD/ProximityMaxGraphDepth", "20", "graph", "proximity_max_graph_depth", 20),
+    ("RGBD/ProximityMaxPaths", "1", "graph", "proximity_max_paths", 1),
+    ("RGBD/ProximityPathFilteringRadius", "0.5", "graph", "proximity_filtering_radius", 0.5),
+    ("RGBD/ProximityAngle", "30", "graph", "proximity_angle", 30.0),
     ("queue_size", "20", "sync", "queue_size", 20),
     ("sync_queue_size", 15, "sync", "queue_size", 15),
 ])
