@@ -6,11 +6,12 @@ bundled with scikit-image (nothing is downloaded). The vocabulary is grown the w
 it (``Vocabulary.quantize`` frame after frame, each frame also a location of the inverted index),
 until 20 k and 200 k words. Queries: frames of held-out warps (400 descriptors each, 2-NN + NNDR).
 
-Compared, in the same run, one thread:
+Compared, in the same run, one thread unless said:
 
 * baseline: faiss ``IndexBinaryFlat`` (exact) with the NNDR test;
 * ``Vocabulary(index=flat)``: exact brute force over the word buffer;
-* ``Vocabulary(index=kdtree)``: FLANN's randomized kd-trees (4 trees, 32 checks; the default);
+* ``Vocabulary(index=kdtree)``: FLANN's randomized kd-trees (4 trees, 32 checks; the default), its
+  search on one thread (RTAB-Map's) and on two (``vocabulary.kdtree_search_threads``, the default);
 * the paper's baseline: rebuilding a FLANN index (LSH, binary) over all words, at 200 k.
 
 Reported: query ms (median over query frames), add 400 / remove 400 ms, agreement of the
@@ -189,9 +190,9 @@ def bench_size(size, ids, words, queries, extra, quick) -> list[dict]:
                      agreement=1.0, match_rate=match_rate, match_recall=1.0))
     print_row(rows[-1])
 
-    for kind in ("flat", "kdtree"):
-        vocab = Vocabulary(replace(VocabularyParams(), index=kind), binary=True, next_word_id=int(ids.max()) + 1,
-                           background_rebuild=False)
+    for kind, threads in (("flat", 1), ("kdtree", 1), ("kdtree", 2)):
+        params = replace(VocabularyParams(), index=kind, kdtree_search_threads=threads)
+        vocab = Vocabulary(params, binary=True, next_word_id=int(ids.max()) + 1, background_rebuild=False)
         t0 = time.perf_counter()
         vocab.add_words(ids, words)
         vocab.match(queries[0][:1])  # kdtree: the words enter the trees (a build) at the first search
@@ -202,10 +203,12 @@ def bench_size(size, ids, words, queries, extra, quick) -> list[dict]:
         recall = float(np.mean(np.concatenate(decisions)[matched] == np.concatenate(exact)[matched]))
         query_ms = float(np.median([median_ms(lambda q=q: vocab.match(q), 3) for q in queries]))
         add_ms, remove_ms = add_remove_ms(vocab, extra)
-        rows.append(dict(words=size, index=f"Vocabulary {kind}", lists=0, nprobe=0,
+        label = f"Vocabulary {kind}" + (f", {threads} search threads" if kind == "kdtree" else "")
+        rows.append(dict(words=size, index=label, lists=0, nprobe=0,
                          build_s=build_s, query_ms=query_ms, add_ms=add_ms, remove_ms=remove_ms,
                          agreement=agreement, match_rate=match_rate, match_recall=recall))
         print_row(rows[-1])
+        vocab.close()
     return rows
 
 
@@ -266,10 +269,11 @@ def bench_scores(vocab: Vocabulary, frames, extractor, n_locations: int) -> dict
 GROWTH_WORDS = 100_000
 GROWTH_FRAMES = 600  # descriptor frames prepared (enough to reach GROWTH_WORDS)
 # (label, vocabulary.index, kd-trees rebuilt in the background)
-GROWTH_CONFIGS = (
-    ("exact search (flat)", "flat", False),
-    ("kdtree, rebuilt in the frame (RTAB-Map)", "kdtree", False),
-    ("kdtree, rebuilt in the background", "kdtree", True),
+GROWTH_CONFIGS = (  # label, index, background rebuild, search threads
+    ("exact search (flat)", "flat", False, 1),
+    ("kdtree, rebuilt in the frame, 1 thread (RTAB-Map)", "kdtree", False, 1),
+    ("kdtree, rebuilt in the background, 1 thread", "kdtree", True, 1),
+    ("kdtree, rebuilt in the background, 2 threads (default)", "kdtree", True, 2),
 )
 
 
@@ -288,9 +292,10 @@ def growth_descriptors(photos, extractor) -> list[np.ndarray]:
     return out
 
 
-def growth_frames(frames: list[np.ndarray], index: str, background: bool) -> dict:
+def growth_frames(frames: list[np.ndarray], index: str, background: bool, threads: int) -> dict:
     """Per-frame quantize ms while the vocabulary grows from 0 to GROWTH_WORDS words."""
-    vocab = Vocabulary(replace(VocabularyParams(), index=index), binary=True, background_rebuild=background)
+    vocab = Vocabulary(replace(VocabularyParams(), index=index, kdtree_search_threads=threads), binary=True,
+                       background_rebuild=background)
     times = []
     for location, descriptors in enumerate(frames, 1):
         t0 = time.perf_counter()
@@ -338,13 +343,13 @@ def main(argv=None) -> int:
     frames = growth_descriptors(photos, extractor)
     print(f"growth run: {QUERY_SIZE} descriptors per frame up to {GROWTH_WORDS} words "
           f"(default OpenMP threads: {default_threads})")
-    print(f"{'configuration':<45} {'frames':>6} {'rebuilds':>8} {'max_ms':>8} {'p99_ms':>8} {'median':>7} {'>100ms':>6}")
+    print(f"{'configuration':<56} {'frames':>6} {'rebuilds':>8} {'max_ms':>8} {'p99_ms':>8} {'median':>7} {'>100ms':>6}")
     growth_runs = []
-    for label, index, background in GROWTH_CONFIGS:
-        run = growth_frames(frames, index, background)
-        run.update(config=label, index=index, background_rebuild=background)
+    for label, index, background, threads in GROWTH_CONFIGS:
+        run = growth_frames(frames, index, background, threads)
+        run.update(config=label, index=index, background_rebuild=background, search_threads=threads)
         growth_runs.append(run)
-        print(f"{label:<45} {run['frames']:>6} {run['rebuilds']:>8} {run['quantize_ms_max']:>8.1f} "
+        print(f"{label:<56} {run['frames']:>6} {run['rebuilds']:>8} {run['quantize_ms_max']:>8.1f} "
               f"{run['quantize_ms_p99']:>8.1f} {run['quantize_ms_median']:>7.1f} {run['frames_over_100ms']:>6}"
               f"  slowest {run['slowest'][:3]}", flush=True)
     if args.growth_only:

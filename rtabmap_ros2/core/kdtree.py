@@ -36,9 +36,11 @@ the reference itself is not repeatable).
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -81,6 +83,11 @@ SWAP_WORDS_PER_SEARCH = 1000
 REPLAY_WORDS_PER_SEARCH = 2000
 # A swap search that still had to wait for the thread longer than this is logged (warning).
 WAIT_WARNING_S = 0.05
+# A search over several threads (``search_threads``) cuts the queries into chunks of this many,
+# claimed in turn by the calling thread and the helpers: a helper that the machine's load keeps
+# waiting claims fewer, and the calling thread never waits for one that has not started (it waits
+# only for the chunks others claimed). Fewer queries than two chunks are searched in the caller.
+SEARCH_CHUNK = 50
 
 logger = logging.getLogger(__name__)
 
@@ -386,7 +393,6 @@ class _Forest:
         self.words = _grown(words, size, n)
         self.ids = _grown(ids, size, n)
         self.removed = np.zeros(size, np.bool_)
-        self.checked = np.zeros(size, np.int64)  # search stamps (RandomizedKdTrees._stamp, from 1)
         self.n_points = n
         self.point_of = IdIndex()  # word id -> point (live words only)
         self.point_of.insert(ids, np.arange(n, dtype=np.int64))
@@ -457,7 +463,6 @@ class _Forest:
         self.words = _grown(self.words, size, keep)
         self.ids = _grown(self.ids, size, keep)
         self.removed = _grown(self.removed, size, keep)
-        self.checked = _grown(self.checked, size, keep)
 
     def _set_nodes(self, nodes: np.ndarray) -> None:
         """The node rows and the column views the numba functions take (strided, no copy)."""
@@ -470,10 +475,13 @@ class _Forest:
             return
         self._set_nodes(_grown(self.nodes, max(needed, 2 * self.nodes.shape[0]), self.n_nodes))
 
-    def search(self, queries: np.ndarray, stamp: int, distances: np.ndarray, points: np.ndarray) -> None:
+    def search(self, queries: np.ndarray, checked: np.ndarray, stamp: int, distances: np.ndarray,
+               points: np.ndarray) -> None:
+        """The 2 nearest words of each query into ``distances`` / ``points``; ``checked`` (at least
+        n_points stamps) marks the words checked, query i's with ``stamp + i``."""
         n = self.n_points
         _search(self.words[:n], self.removed[:n], self.roots, self.feat, self.val, self.child1, self.child2,
-                queries, self.checked, stamp, distances, points)
+                queries, checked, stamp, distances, points)
 
 
 class _Rebuild:
@@ -543,14 +551,19 @@ class RandomizedKdTrees:
     rebuild happens in the call that doubles the index, as RTAB-Map's."""
 
     def __init__(self, n_bytes: int, seed: int = 0, *, background_rebuild: bool = False,
-                 swap_searches: int = 1) -> None:
+                 swap_searches: int = 1, search_threads: int = 1) -> None:
         if swap_searches < 1:
             raise ValueError(f"swap_searches={swap_searches} is invalid: >= 1")
+        if search_threads < 1:
+            raise ValueError(f"search_threads={search_threads} is invalid: >= 1")
         self.n_bits = 8 * n_bytes
         self._lanes = -(-n_bytes // 8)
         self._rng = np.random.default_rng(seed)
         self._forest = _Forest(self._lanes, self.n_bits, np.zeros((0, self._lanes), np.uint64), np.zeros(0, np.int64))
         self._stamp = 1  # checked[] starts at 0
+        # One array of check stamps per searching thread (query i of a search is stamp _stamp + i).
+        self._checked = [np.zeros(0, np.int64) for _ in range(search_threads)]
+        self._pool: ThreadPoolExecutor | None = None
         self._searches = 0
         self.background_rebuild = background_rebuild
         self.swap_searches = swap_searches
@@ -649,16 +662,54 @@ class RandomizedKdTrees:
         distances = np.full((n, NEAREST), np.inf, np.float64)
         points = np.full((n, NEAREST), -1, np.int64)
         if forest.roots.size and n:
-            forest.search(_as_lanes(descriptors, self._lanes), self._stamp, distances, points)
+            self._search_chunks(forest, _as_lanes(descriptors, self._lanes), distances, points)
             self._stamp += n
         ids = np.where(points >= 0, forest.ids[np.maximum(points, 0)], -1)
         return distances.astype(np.float32), ids
 
+    def _search_chunks(self, forest: _Forest, queries: np.ndarray, distances: np.ndarray, points: np.ndarray) -> None:
+        """Search ``queries`` in chunks of SEARCH_CHUNK, over this thread and ``search_threads - 1`` helpers
+        (numba releases the GIL). Each query's search is independent of the others' (its own stamp), so
+        the answers are the same however the chunks are shared out."""
+        for slot, checked in enumerate(self._checked):
+            if checked.size < forest.n_points:
+                self._checked[slot] = np.zeros(max(forest.n_points, 2 * checked.size), np.int64)
+        n = queries.shape[0]
+        n_chunks = -(-n // SEARCH_CHUNK)
+        helpers = min(len(self._checked), n_chunks) - 1
+        claim = itertools.count()  # next() is atomic under the GIL
+        done = [threading.Event() for _ in range(n_chunks)]
+        failed: list[BaseException] = []
+
+        def work(slot: int) -> None:
+            while (chunk := next(claim)) < n_chunks:
+                a, b = chunk * SEARCH_CHUNK, min(n, (chunk + 1) * SEARCH_CHUNK)
+                try:
+                    forest.search(queries[a:b], self._checked[slot], self._stamp + a, distances[a:b], points[a:b])
+                except BaseException as exc:  # re-raised in the calling thread
+                    failed.append(exc)
+                finally:
+                    done[chunk].set()
+
+        if helpers > 0:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(len(self._checked) - 1, thread_name_prefix="kdtree-search")
+            for slot in range(1, helpers + 1):
+                self._pool.submit(work, slot)
+        work(0)
+        for event in done:
+            event.wait()
+        if failed:
+            raise failed[0]
+
     def close(self) -> None:
-        """Wait for a pending rebuild and drop it (the current trees stay in use)."""
+        """Wait for a pending rebuild and drop it (the current trees stay in use); stop the search helpers."""
         rebuild, self._rebuild = self._rebuild, None
         if rebuild is not None:
             rebuild.thread.join()
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True)
 
 
 # The compiled functions called from Python (the others are inlined into them).

@@ -120,6 +120,12 @@ class VocabularyParams:
     kdtree_seed: int = _p(
         0, "kdtree: seed of the trees' random choices (FLANN draws its own on every run, so RTAB-Map itself "
         "is not repeatable: bench/bench_lcd.py --ours-runs compares several seeds with several of its runs)")
+    kdtree_search_threads: int = _p(
+        2,
+        "kdtree: threads searching a frame's descriptors, in chunks of 50 claimed in turn (the frame's thread "
+        "never waits for a helper that has not started; the words found are the same for any number). "
+        "RTAB-Map's FLANN search uses one (bench/bench_vocabulary.py and bench/bench_slam.py compare them). The "
+        "exact search (flat) stays on one thread", "threads")
     rebuild_swap_frames: int = _p(
         1,
         "kdtree: the trees are rebuilt when they have doubled (Kp/FlannRebalancingFactor 2), in a background "
@@ -135,6 +141,8 @@ class VocabularyParams:
         _check(self.index in ("flat", "kdtree"), "vocabulary.index", self.index,
                "kdtree or flat (auto and ivf were removed with the IVF word search, issue 50: flat is the exact search)")
         _check(self.rebuild_swap_frames >= 1, "vocabulary.rebuild_swap_frames", self.rebuild_swap_frames, ">= 1")
+        _check(self.kdtree_search_threads >= 1, "vocabulary.kdtree_search_threads", self.kdtree_search_threads,
+               ">= 1")
 
 
 @dataclass(frozen=True)

@@ -547,7 +547,8 @@ class Vocabulary:
             if self._kdtree is None:
                 self._kdtree = kdtree.RandomizedKdTrees(self._dim, seed=self.params.kdtree_seed,
                                                         background_rebuild=self.background_rebuild,
-                                                        swap_searches=self.params.rebuild_swap_frames)
+                                                        swap_searches=self.params.rebuild_swap_frames,
+                                                        search_threads=self.params.kdtree_search_threads)
             if self._kdtree_pending:
                 ids = sorted(self._kdtree_pending)
                 self._kdtree.add(np.stack([self._kdtree_pending[i] for i in ids]), np.asarray(ids, np.int64))

@@ -83,6 +83,32 @@ def test_same_seed_same_answers(rng):
     np.testing.assert_array_equal(answers[0][0], answers[1][0])
 
 
+def test_threads_find_the_same_words_as_one(rng):
+    """vocabulary.kdtree_search_threads: the queries are shared out in chunks over threads, and
+    every answer is the one a single thread gives (each query's checks are its own), through
+    insertions, removals and a background rebuild; a short batch stays in the calling thread."""
+    words = random_binary(rng, 6000)
+    queries = [flip_bits(rng, words[i:i + 400], 12) for i in range(0, 6000, 400)]
+    answers = {}
+    for threads in (1, 2, 3):
+        trees = RandomizedKdTrees(32, seed=5, background_rebuild=True, swap_searches=1, search_threads=threads)
+        found = []
+        for frame, start in enumerate(range(0, 6000, 400)):
+            trees.add(words[start:start + 400], np.arange(start, start + 400))
+            if frame % 3 == 2:
+                trees.remove(np.arange(start, start + 40))
+            found.append(trees.search(queries[frame]))
+        found.append(trees.search(queries[0][:kdtree.SEARCH_CHUNK]))  # one chunk: no helper
+        trees.close()
+        answers[threads] = found
+    for threads in (2, 3):
+        for (d1, i1), (dn, i_n) in zip(answers[1], answers[threads]):
+            np.testing.assert_array_equal(i1, i_n)
+            np.testing.assert_array_equal(d1, dn)
+    with pytest.raises(ValueError, match="search_threads"):
+        RandomizedKdTrees(32, search_threads=0)
+
+
 def test_a_single_word_gives_one_neighbour(rng):
     trees = RandomizedKdTrees(32)
     distances, ids = trees.search(random_binary(rng, 2))
