@@ -311,13 +311,16 @@ CONSENSUS_DISTANCE_M = 0.5
 CONSENSUS_ANGLE_RAD = np.deg2rad(10.0)
 
 
-def residuals(poses: dict[int, np.ndarray], table: LinkTable) -> np.ndarray:
-    """(N, 4, 4) residuals of the links of ``table`` at ``poses``: identity where a link holds exactly."""
-    stack = PoseStack(poses)
-    rows, found = stack.rows(table.ends)
-    if not found.all():
-        raise KeyError(f"link end {int(table.ends[~found][0])} has no pose")
-    return stack.residuals(rows, table.T_inverse)
+def residuals(poses: Mapping[int, np.ndarray], table: LinkTable) -> np.ndarray:
+    """(N, 4, 4) residuals of the links of ``table`` at ``poses``: identity where a link holds exactly.
+    Only the links' ends are stacked (a loop closure frame asks this of its ~300 inter-session links
+    over a local map of ~1,600 poses)."""
+    ends = np.unique(table.ends)
+    missing = [n for n in ends.tolist() if n not in poses]
+    if missing:
+        raise KeyError(f"link end {missing[0]} has no pose")
+    stack = PoseStack.of_arrays(ends, np.array([poses[n] for n in ends.tolist()], dtype=float))
+    return stack.residuals(stack.rows(table.ends)[0], table.T_inverse)
 
 
 class LinkTable:
@@ -338,11 +341,38 @@ class PoseStack:
     checks gather ~2,000 links a loop closure frame, and gathering 4x4 arrays or dict entries per
     link from Python was most of their time."""
 
-    def __init__(self, poses: dict[int, np.ndarray]) -> None:
+    def __init__(self, poses: Mapping[int, np.ndarray]) -> None:
         ids = np.fromiter(poses, np.int64, len(poses))
         order = np.argsort(ids, kind="stable")
         self.ids = ids[order]
         self.poses = np.array(list(poses.values()), dtype=float).reshape(-1, 4, 4)[order]
+
+    @classmethod
+    def of_arrays(cls, ids: np.ndarray, poses: np.ndarray) -> "PoseStack":
+        """The stack of (n,) ``ids`` and their (n, 4, 4) ``poses`` as a solver holds them (sorted here
+        unless they already are), without going through a dict."""
+        stack = cls.__new__(cls)
+        ids = np.asarray(ids, np.int64)
+        if ids.size > 1 and not (np.diff(ids) > 0).all():
+            order = np.argsort(ids, kind="stable")
+            ids, poses = ids[order], poses[order]
+        stack.ids, stack.poses = ids, np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+        return stack
+
+    @classmethod
+    def of(cls, poses: "PoseStack | Mapping[int, np.ndarray]") -> "PoseStack":
+        """``poses`` as a stack (itself when it is one)."""
+        return poses if isinstance(poses, PoseStack) else cls(poses)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def gather(self, nodes: list[int]) -> np.ndarray:
+        """(len(nodes), 4, 4) poses of ``nodes``, in that order (each must be in the stack)."""
+        rows, found = self.rows(np.asarray(nodes, np.int64))
+        if not found.all():
+            raise KeyError(f"node {int(np.asarray(nodes)[~found][0])} has no pose")
+        return self.poses[rows]
 
     def rows(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Row of each of ``nodes`` (any shape) in the stack, and whether it has one (else row 0)."""

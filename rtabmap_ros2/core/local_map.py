@@ -29,7 +29,7 @@ from typing import Optional
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Graph, Link, LinkType, chain_poses, consensus_guess
+from rtabmap_ros2.core.graph import Graph, Link, LinkType, PoseStack, chain_poses, consensus_guess
 from rtabmap_ros2.core.grid import DepthPoints, OccupancyGrid
 from rtabmap_ros2.core.local_grid import LocalGrid
 from rtabmap_ros2.core.loop_validation import fits_inter_session_majority, judged_links, max_error_ratio, only_bridges
@@ -87,6 +87,8 @@ class LocalMapper:
         # nodes left the local map since the last solve (then it is not worth starting again).
         self._solver: Optional[IncrementalOptimizer] = None
         self._nodes_left = False
+        # The last optimize_component's solution as a stack (follow_local_frame reads it), or None.
+        self._solution_stack: Optional[PoseStack] = None
         # Graph version of the current solution (None: no valid solution to extend), and whether
         # WM changed since (transfer, retrieval): see _leaf_update. _resolve_next: the local map
         # is the last solution kept (_last_solution_kept), not a solution.
@@ -242,7 +244,7 @@ class LocalMapper:
         if fresh and limit > 0:
             new = {link.key() for link, _ in fresh}
             judged = judged_links(links, self.inactive_links, result.switched_off, new)
-            worst = max_error_ratio(result.poses, judged, bool(self.planar), before=previous, new=new)
+            worst = max_error_ratio(result.pose_stack(), judged, bool(self.planar), before=previous, new=new)
             if worst > limit and not only_bridges(links, [link for link, _ in fresh]):
                 nearby = [(link, before) for link, before in fresh if link.key() in self.proximity_keys]
                 if nearby and len(nearby) < len(fresh):
@@ -264,6 +266,7 @@ class LocalMapper:
                 self.new_loops = []
                 kept = self._last_solution_kept(root, rejected_before)
                 return kept if kept is not None else self.optimize_component(root)
+        self._solution_stack = result.pose_stack()
         return result.poses, links
 
     def _incremental(self) -> IncrementalOptimizer:
@@ -330,13 +333,15 @@ class LocalMapper:
         had_loops = bool(self.new_loops)
         solved, self.solved_version = self.solved_version, None
         leaf = self._leaf_link(newest, solved)
+        self._solution_stack = None
         if leaf is None:
             poses, links = self.optimize_component(newest)
-            self.links = [link for link in links if link.key() not in self.inactive_links]
+            inactive = self.inactive_links
+            self.links = [link for link in links if link.key() not in inactive] if inactive else links
         else:
             poses = self._leaf_update(newest, leaf)
             self.links.append(leaf)
-        self.follow_local_frame(poses, rigid=leaf is not None)
+        self.follow_local_frame(poses, rigid=leaf is not None, stack=self._solution_stack)
         self.poses = poses
         self.solved_version = None if self._resolve_next else memory.graph.version
         self._resolve_next = False
@@ -345,7 +350,7 @@ class LocalMapper:
         return had_loops and not any(memory.graph.link(l.from_id, l.to_id) and l.key() not in self.inactive_links
                                      for l, _ in self.new_loops)
 
-    def follow_local_frame(self, poses: dict[int, np.ndarray], rigid: bool) -> None:
+    def follow_local_frame(self, poses: dict[int, np.ndarray], rigid: bool, stack: Optional[PoseStack] = None) -> None:
         """Before ``poses`` replaces the last solution: nodes leaving the local map keep their
         last pose in the world frame, and the world frame follows the new solution's (the rigid
         change that best maps the nodes in both solutions; exact for a ``rigid`` leaf update).
@@ -353,7 +358,7 @@ class LocalMapper:
         Each solution is rooted at its newest node's odometry pose, so its frame moves with the
         odometry drift: poses kept from solutions minutes apart were metres apart in one old
         map, no two loop closures to it agreed, and the last of 5 sessions at T_time 0.1 s never
-        merged."""
+        merged. ``stack``: ``poses`` as a stack, when the solver gave one."""
         previous = self.poses
         for node, pose in previous.items():
             if node not in poses:
@@ -364,7 +369,8 @@ class LocalMapper:
         if rigid:
             change = previous[common[0]] @ transforms.inverse(poses[common[0]])
         else:
-            change = _rigid_change(np.array([previous[n] for n in common]), np.array([poses[n] for n in common]))
+            new = stack.gather(common) if stack is not None else np.array([poses[n] for n in common])
+            change = _rigid_change(np.array([previous[n] for n in common]), new)
         self.T_world_local = self.T_world_local @ change
 
     def _keep_map_pose(self, node: int, pose: np.ndarray) -> None:

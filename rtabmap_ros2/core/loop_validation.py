@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import TYPE_CHECKING, Optional, Protocol
+from typing import TYPE_CHECKING, Mapping, Optional, Protocol
 
 import numpy as np
 
@@ -313,8 +313,9 @@ class LoopValidator:
         return None
 
 
-def max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: bool,
-                    before: Optional[dict[int, np.ndarray]] = None, new: frozenset | set = frozenset()) -> float:
+def max_error_ratio(poses: PoseStack | Mapping[int, np.ndarray], links: list[Link], planar: bool,
+                    before: PoseStack | Mapping[int, np.ndarray] | None = None,
+                    new: frozenset | set = frozenset()) -> float:
     """Largest error of a link after optimisation, in standard deviations of that link.
 
     Translation and rotation errors are taken separately (the residual transform's norm and
@@ -330,7 +331,7 @@ def max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: boo
     old sessions from 7.8 to 3.2 (their kept poses are each session's own solution). A false loop
     closure bends links by far more than that.
     """
-    stack, table = PoseStack(poses), LinkTable(links)
+    stack, table = PoseStack.of(poses), LinkTable(links)
     rows, found = stack.rows(table.ends)
     inside = found.all(axis=1)
     if not inside.any():
@@ -338,8 +339,8 @@ def max_error_ratio(poses: dict[int, np.ndarray], links: list[Link], planar: boo
     rows, ends, T_inverse = rows[inside], table.ends[inside], table.T_inverse[inside]
     residual = stack.residuals(rows, T_inverse)
     t_err, r_err = error_sizes(residual, planar)
-    if before:
-        before_stack = PoseStack(before)
+    if before is not None and len(before):
+        before_stack = PoseStack.of(before)
         rows_before, found_before = before_stack.rows(ends)
         keys = np.sort(ends, axis=1)
         is_new = np.zeros(len(ends), bool)
@@ -383,7 +384,7 @@ def judged_links(links: list[Link], inactive: set[tuple[int, int]], switched_off
     ``new`` loop closures, which are always judged (one switched off is as good as rejected: seed
     5 at T_time 0.1 s accepted 6 false ones online when they were not)."""
     ignored = inactive | ({link.key() for link in switched_off} - new)
-    return [link for link in links if link.key() not in ignored]
+    return [link for link in links if link.key() not in ignored] if ignored else list(links)
 
 
 def error_sizes(residual: np.ndarray, planar: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -39,12 +39,12 @@ import time
 import weakref
 from collections.abc import Collection
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import Link, bridges, connected_components
+from rtabmap_ros2.core.graph import Link, PoseStack, bridges, connected_components
 from rtabmap_ros2.core.params import GraphParams
 from rtabmap_ros2.errors import OptimizationError
 
@@ -110,6 +110,8 @@ class OptimizationResult:
             ``robust_reject_scale`` (bridges the robust mode may not drop, or ones left when its
             rounds ran out): barely weighted, so their error says nothing about the rest.
         time_s: wall time of the optimisation (s).
+        stack: the same poses as one :class:`PoseStack` when the solver made them so (the checks
+            after a solve read them as arrays), else None.
     """
 
     poses: dict[int, np.ndarray]
@@ -119,6 +121,11 @@ class OptimizationResult:
     rejected: list[Link] = field(default_factory=list)
     time_s: float = 0.0
     switched_off: list[Link] = field(default_factory=list)
+    stack: Optional[PoseStack] = None
+
+    def pose_stack(self) -> PoseStack:
+        """The poses as one stack (made from ``poses`` when the solver did not give one)."""
+        return self.stack if self.stack is not None else PoseStack(self.poses)
 
 
 # -- conversions ---------------------------------------------------------------------------------
@@ -320,30 +327,24 @@ def _gtsam_poses(T: np.ndarray, planar: bool) -> list:
     return [gtsam.Pose3(gtsam.Rot3(R), t) for R, t in zip(T[:, :3, :3], T[:, :3, 3])]
 
 
-def _poses_of(values, planar: bool) -> dict[int, np.ndarray]:
-    """Every pose of ``values`` as a 4x4 array, at once."""
-    keys, stacked = _pose_stack(values, planar)
-    return dict(zip(keys, stacked))
-
-
 def _pose_stack(values, planar: bool) -> tuple[list[int], np.ndarray]:
     """The keys of ``values`` and their poses as one (n, 4, 4) array (key order)."""
-    import gtsam
+    return list(values.keys()), _stack_of_vectors(_pose_vectors(values, planar), planar)
 
-    keys = list(values.keys())
-    out = np.zeros((len(keys), 4, 4))
+
+def _stack_of_vectors(vectors: np.ndarray, planar: bool) -> np.ndarray:
+    """(n, 4, 4) poses of :func:`_pose_vectors`' (n, 3) x, y, yaw or (n, 12) rotation and translation."""
+    out = np.zeros((len(vectors), 4, 4))
     out[:, 3, 3] = 1.0
     if planar:
-        xyt = gtsam.utilities.extractPose2(values).reshape(-1, 3)
-        c, s = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
+        c, s = np.cos(vectors[:, 2]), np.sin(vectors[:, 2])
         out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
         out[:, 2, 2] = 1.0
-        out[:, :2, 3] = xyt[:, :2]
+        out[:, :2, 3] = vectors[:, :2]
     else:
-        rt = gtsam.utilities.extractPose3(values).reshape(-1, 12)
-        out[:, :3, :3] = rt[:, :9].reshape(-1, 3, 3)
-        out[:, :3, 3] = rt[:, 9:]
-    return keys, out
+        out[:, :3, :3] = vectors[:, :9].reshape(-1, 3, 3)
+        out[:, :3, 3] = vectors[:, 9:]
+    return out
 
 
 # -- optimisation --------------------------------------------------------------------------------
@@ -469,9 +470,9 @@ def optimize(poses: dict[int, np.ndarray], links: list[Link], root_id: int, para
         switched_off = []
     kept_graph = plain_graph if len(kept) == len(used) else _graph(plain[id(link)] for link in kept)
     chi2_final = 2.0 * float(kept_graph.error(values))
-    out = _poses_of(values, planar)
-    return OptimizationResult(out, chi2_initial, chi2_final, iterations, rejected, time.perf_counter() - start,
-                              switched_off)
+    keys, stacked = _pose_stack(values, planar)
+    return OptimizationResult(dict(zip(keys, stacked)), chi2_initial, chi2_final, iterations, rejected,
+                              time.perf_counter() - start, switched_off, PoseStack.of_arrays(np.array(keys), stacked))
 
 
 def _graph(factors):
@@ -616,11 +617,13 @@ class IncrementalOptimizer:
         self._links: dict[tuple[int, int], Link] = {}  # every link held, active or rejected
         self._factor: dict[tuple[int, int], int] = {}  # active link key -> iSAM2 factor index
         self._values = None  # the current estimate (gtsam Values)
+        self._vectors = None  # its poses as extracted (_estimate_vectors), None until asked
 
     def invalidate(self) -> None:
         """Forget the solution: the next ``solve`` returns None (the caller solves in batch)."""
         self._isam = None
         self._values = None
+        self._vectors = None
 
     def holds(self, nodes: Collection[int]) -> bool:
         """True when any of ``nodes`` is a variable of the solution held."""
@@ -650,7 +653,7 @@ class IncrementalOptimizer:
             graph.add(factor)
         result = self._isam.update(graph, values)
         self._factor = dict(zip((link.key() for link in active), list(result.getNewFactorsIndices())[1:]))
-        self._values = self._isam.calculateEstimate()
+        self._set_estimate()
 
     def solve(self, component: set[int], links: list[Link], root_id: int, root_pose: np.ndarray,
               guess: dict[int, np.ndarray]) -> OptimizationResult | None:
@@ -693,13 +696,13 @@ class IncrementalOptimizer:
         if self.params.robust:
             rejected, switched_off, more = self._robust_rounds(component, rejected)
             iterations += more
-        keys, stacked = _pose_stack(self._values, self.planar)
+        keys, stacked = self._estimate_stack()
         if self.planar:
             root_pose = transforms.project_planar(root_pose)
         align = root_pose @ transforms.inverse(stacked[keys.index(root_id)])
-        poses = dict(zip(keys, np.einsum("ij,njk->nik", align, stacked)))
-        return OptimizationResult(poses, float("nan"), float("nan"), iterations, rejected,
-                                  time.perf_counter() - start, switched_off)
+        aligned = np.einsum("ij,njk->nik", align, stacked)
+        return OptimizationResult(dict(zip(keys, aligned)), float("nan"), float("nan"), iterations, rejected,
+                                  time.perf_counter() - start, switched_off, PoseStack.of_arrays(np.array(keys), aligned))
 
     def _prior(self, node_id: int, pose: np.ndarray):
         import gtsam
@@ -717,15 +720,29 @@ class IncrementalOptimizer:
     def _update(self, graph, values, remove: list[int], added: list[Link]) -> None:
         result = self._isam.update(graph, values, remove)
         self._factor.update(zip((link.key() for link in added), list(result.getNewFactorsIndices())))
+        self._set_estimate()
+
+    def _set_estimate(self) -> None:
         self._values = self._isam.calculateEstimate()
+        self._vectors = None  # _pose_vectors of _values, read once (_estimate_vectors)
+
+    def _estimate_vectors(self) -> np.ndarray:
+        """:func:`_pose_vectors` of the current estimate, extracted once per estimate."""
+        if self._vectors is None:
+            self._vectors = _pose_vectors(self._values, self.planar)
+        return self._vectors
+
+    def _estimate_stack(self) -> tuple[list[int], np.ndarray]:
+        """:func:`_pose_stack` of the current estimate, from its extracted vectors."""
+        return list(self._values.keys()), _stack_of_vectors(self._estimate_vectors(), self.planar)
 
     def _converge(self) -> int:
         """Further iSAM2 updates (relinearisation and Gauss-Newton steps) until the poses settle."""
-        before = _pose_vectors(self._values, self.planar)
+        before = self._estimate_vectors()
         for done in range(1, ISAM2_EXTRA_UPDATES + 1):
             self._isam.update()
-            self._values = self._isam.calculateEstimate()
-            after = _pose_vectors(self._values, self.planar)
+            self._set_estimate()
+            after = self._estimate_vectors()
             if np.abs(after - before).max(initial=0.0) < ISAM2_CONVERGENCE:
                 return done
             before = after

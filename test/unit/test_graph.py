@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.graph import (Graph, Link, LinkTable, LinkType, agree, agree_many, component_labels,
+import pytest
+
+from rtabmap_ros2.core.graph import (Graph, Link, LinkTable, LinkType, PoseStack, agree, agree_many, component_labels,
                                      connected_components, residuals)
 
 
@@ -32,6 +34,22 @@ def test_link_table_and_residuals_are_each_links_own():
              12: transforms.from_xy_yaw(-1.0, 1.0, -0.7)}
     for link, residual in zip(links, residuals(poses, table)):
         np.testing.assert_allclose(residual, link.residual(poses[link.from_id], poses[link.to_id]), atol=1e-12)
+    with pytest.raises(KeyError, match="12"):
+        residuals({3: poses[3], 7: poses[7]}, table)
+
+
+def test_pose_stack_from_arrays_is_the_stack_of_their_dict():
+    """A solver's (ids, poses) arrays make the same stack as the dict of them, unsorted ids included;
+    gather returns poses in the order asked and names a node that has none."""
+    ids = np.array([12, 3, 7])
+    poses = np.stack([transforms.from_xy_yaw(float(i), -1.0, 0.1 * i) for i in ids])
+    from_arrays, from_dict = PoseStack.of_arrays(ids, poses), PoseStack(dict(zip(ids.tolist(), poses)))
+    np.testing.assert_array_equal(from_arrays.ids, from_dict.ids)
+    np.testing.assert_array_equal(from_arrays.poses, from_dict.poses)
+    assert PoseStack.of(from_arrays) is from_arrays and len(from_arrays) == 3
+    np.testing.assert_array_equal(from_arrays.gather([7, 12]), poses[[2, 0]])
+    with pytest.raises(KeyError, match="5"):
+        from_arrays.gather([3, 5])
 
 
 def test_agree_many_is_agree_of_each():
