@@ -55,6 +55,11 @@ MIN_SAMPLE_AREA = 1e-4
 IRLS_SCALE_RATIO = 0.2
 IRLS_ITERATIONS = 20
 IRLS_CONVERGENCE = 1e-6  # m and rad
+# RANSAC stops once a hypothesis free of outliers has been drawn with this probability, given the best
+# inlier ratio w so far (k = log(1 - p) / log(1 - w^3) non-degenerate samples, at most
+# registration.ransac_iterations): PCL's RandomSampleConsensus, which RTAB-Map's 3D-3D estimate uses
+# (util3d::transformFromXYZCorrespondences) with PCL's default probability.
+RANSAC_PROBABILITY = 0.99
 # Information matrix floors: variances never go below these (1 cm, ~0.6 degree standard deviation),
 # so a lucky near-zero residual cannot make one link dominate the whole graph.
 MIN_TRANSLATION_VARIANCE = 1e-4  # m^2
@@ -292,7 +297,8 @@ def ransac_rigid(from_points: np.ndarray, to_points: np.ndarray, inlier_distance
     Args:
         from_points, to_points: (N,3) corresponding points (m), finite, N >= 3.
         inlier_distance: a correspondence is an inlier when ``|from - T @ to| < inlier_distance`` (m).
-        iterations: number of 3-point hypotheses.
+        iterations: number of 3-point hypotheses at most (fewer once :data:`RANSAC_PROBABILITY` is
+            reached, as PCL's RANSAC in RTAB-Map).
         rng: random generator for the samples.
 
     Returns:
@@ -311,8 +317,8 @@ def ransac_rigid(from_points: np.ndarray, to_points: np.ndarray, inlier_distance
     # range): measured on TUM fr1_xyz it left 2-11 cm errors, the weighted refit 0.5-1 cm.
     found = _ransac_compiled(np.ascontiguousarray(from_points, dtype=np.float64),
                              np.ascontiguousarray(to_points, dtype=np.float64), samples, float(inlier_distance),
-                             MIN_SAMPLE_AREA, IRLS_SCALE_RATIO * inlier_distance, IRLS_ITERATIONS, IRLS_CONVERGENCE,
-                             T, mask)
+                             MIN_SAMPLE_AREA, RANSAC_PROBABILITY, IRLS_SCALE_RATIO * inlier_distance,
+                             IRLS_ITERATIONS, IRLS_CONVERGENCE, T, mask)
     if not found:
         raise RegistrationError(
             f"RANSAC: all {iterations} samples of the {n} correspondences are degenerate (collinear or "
@@ -371,27 +377,37 @@ def _inliers(T, from_points, to_points, inlier_distance, out):
 
 
 @jit()
-def _ransac_compiled(from_points, to_points, samples, inlier_distance, min_area, scale, refits, convergence,
-                     T, mask):
+def _ransac_compiled(from_points, to_points, samples, inlier_distance, min_area, probability, scale, refits,
+                     convergence, T, mask):
     """:func:`ransac_rigid`'s work: the best-scoring hypothesis of the non-degenerate ``samples``
-    (the first of equal scores) refitted into ``T``, its final inliers into ``mask``; False when
-    every sample is degenerate."""
+    (the first of equal scores), drawn until one free of outliers has come with ``probability``
+    (PCL's RandomSampleConsensus::computeModel), refitted into ``T``, its final inliers into ``mask``;
+    False when every sample is degenerate."""
     n = from_points.shape[0]
     ones = np.ones(3)
     trial = np.zeros((4, 4))
     inliers = np.zeros(n, dtype=np.bool_)
     best = -1
+    drawn = 0  # non-degenerate samples scored
+    needed = np.inf
+    log_miss = np.log(1.0 - probability)
+    eps = np.finfo(np.float64).eps
     for h in range(samples.shape[0]):
+        if drawn >= needed:
+            break
         a, b, c = to_points[samples[h, 0]], to_points[samples[h, 1]], to_points[samples[h, 2]]
         u, v = b - a, c - a
         cross = np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
         if 0.5 * np.sqrt(np.sum(cross * cross)) <= min_area:
             continue
+        drawn += 1
         _fit_rigid(from_points, to_points, samples[h], ones, trial)
         count = _inliers(trial, from_points, to_points, inlier_distance, inliers)
         if count > best:
             best = count
             T[:, :] = trial
+            p_outlier_in_sample = min(1.0 - eps, max(eps, 1.0 - (count / n) ** 3))
+            needed = log_miss / np.log(p_outlier_in_sample)
     if best < 0:
         return False
     residual = np.empty(n)
