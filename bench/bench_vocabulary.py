@@ -203,7 +203,7 @@ def bench_size(size, ids, words, queries, extra, quick) -> list[dict]:
         recall = float(np.mean(np.concatenate(decisions)[matched] == np.concatenate(exact)[matched]))
         query_ms = float(np.median([median_ms(lambda q=q: vocab.match(q), 3) for q in queries]))
         add_ms, remove_ms = add_remove_ms(vocab, extra)
-        label = f"Vocabulary {kind}" + (f", {threads} search threads" if kind == "kdtree" else "")
+        label = f"Vocabulary {kind}" + (f", {threads} search thread{'s' * (threads > 1)}" if kind == "kdtree" else "")
         rows.append(dict(words=size, index=label, lists=0, nprobe=0,
                          build_s=build_s, query_ms=query_ms, add_ms=add_ms, remove_ms=remove_ms,
                          agreement=agreement, match_rate=match_rate, match_recall=recall))

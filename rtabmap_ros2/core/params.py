@@ -124,8 +124,10 @@ class VocabularyParams:
         2,
         "kdtree: threads searching a frame's descriptors, in chunks of 50 claimed in turn (the frame's thread "
         "never waits for a helper that has not started; the words found are the same for any number). "
-        "RTAB-Map's FLANN search uses one (bench/bench_vocabulary.py and bench/bench_slam.py compare them). The "
-        "exact search (flat) stays on one thread", "threads")
+        "RTAB-Map's FLANN search uses one. 2 halve a search on an idle core (400 queries, 200k words: 20.9 -> 10.0 "
+        "ms); in `map`, where the image reader and database writer share the second core, quantisation's median "
+        "fell 2.4-3.6 ms a frame on simulator seeds 5, 9, 4242, 17 (bench/bench_slam.py; bench/bench_vocabulary.py "
+        "compares 1 and 2). The exact search (flat) stays on one thread", "threads")
     rebuild_swap_frames: int = _p(
         1,
         "kdtree: the trees are rebuilt when they have doubled (Kp/FlannRebalancingFactor 2), in a background "
