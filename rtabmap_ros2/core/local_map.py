@@ -238,13 +238,14 @@ class LocalMapper:
                 self._incremental().reset(result.poses, links, {link.key() for link in result.rejected})
         self._nodes_left = False
         self.inactive_links = {link.key() for link in result.rejected}
+        solution = result.pose_stack()
         fresh = [(link, before) for link, before in self.new_loops
                  if link.from_id in component and link.to_id in component]
         limit = self.params.graph.optimize_max_error
         if fresh and limit > 0:
             new = {link.key() for link, _ in fresh}
             judged = judged_links(links, self.inactive_links, result.switched_off, new)
-            worst = max_error_ratio(result.pose_stack(), judged, bool(self.planar), before=previous, new=new)
+            worst = max_error_ratio(solution, judged, bool(self.planar), before=previous, new=new)
             if worst > limit and not only_bridges(links, [link for link, _ in fresh]):
                 nearby = [(link, before) for link, before in fresh if link.key() in self.proximity_keys]
                 if nearby and len(nearby) < len(fresh):
@@ -266,7 +267,7 @@ class LocalMapper:
                 self.new_loops = []
                 kept = self._last_solution_kept(root, rejected_before)
                 return kept if kept is not None else self.optimize_component(root)
-        self._solution_stack = result.pose_stack()
+        self._solution_stack = solution
         return result.poses, links
 
     def _incremental(self) -> IncrementalOptimizer:
