@@ -13,11 +13,10 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from rtabmap_ros2.core.sensor import depth_from_mm, depth_to_mm
 from rtabmap_ros2.errors import DatabaseError, SensorDataError
 
 JPEG_QUALITY = 90  # RGB images are stored as JPEG at this quality (0-100)
-MM_PER_M = 1000.0  # depth PNGs hold millimetres
-MAX_DEPTH_MM = 65535  # largest value of a 16-bit PNG: depth is clipped to 65.535 m
 
 
 def encode_rgb(rgb: np.ndarray) -> bytes:
@@ -45,10 +44,7 @@ def encode_depth(depth_m: np.ndarray) -> bytes:
     """
     if depth_m.ndim != 2:
         raise SensorDataError(f"encode_depth needs an HxW depth image (m), got shape {depth_m.shape}")
-    d = np.asarray(depth_m, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        invalid = ~np.isfinite(d) | (d <= 0)
-        mm = np.clip(np.rint(np.where(invalid, 0.0, d) * MM_PER_M), 0, MAX_DEPTH_MM).astype(np.uint16)
+    mm = depth_to_mm(depth_m)
     ok, buf = cv2.imencode(".png", mm)
     if not ok:
         raise SensorDataError(f"OpenCV could not PNG-encode a depth image of shape {depth_m.shape}")
@@ -60,9 +56,7 @@ def decode_depth(data: bytes) -> np.ndarray:
     mm = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if mm is None or mm.dtype != np.uint16 or mm.ndim != 2:
         raise DatabaseError(f"stored depth image ({len(data)} bytes) is not a 16-bit PNG: the database is damaged")
-    depth = mm.astype(np.float32) / np.float32(MM_PER_M)
-    depth[mm == 0] = np.nan
-    return depth
+    return depth_from_mm(mm)
 
 
 @dataclass
@@ -92,11 +86,16 @@ class SensorBlobs:
 
     @classmethod
     def deferred(cls, rgb: Optional[np.ndarray] = None, depth_m: Optional[np.ndarray] = None,
-                 odom_covariance: Optional[np.ndarray] = None) -> "SensorBlobs":
+                 odom_covariance: Optional[np.ndarray] = None, rgb_jpeg: Optional[bytes] = None,
+                 depth_png16_mm: Optional[bytes] = None) -> "SensorBlobs":
         """The images kept (copied) as they are, encoded later by :meth:`encoded`: the background
-        writer does it, off the frame's critical path (JPEG + 16-bit PNG took ~8 ms a frame)."""
-        return cls(None, None, None if odom_covariance is None else np.asarray(odom_covariance, dtype=np.float64),
-                   pending=(None if rgb is None else np.array(rgb), None if depth_m is None else np.array(depth_m)))
+        writer does it, off the frame's critical path (JPEG + 16-bit PNG took ~8 ms a frame).
+        An image already encoded as stored (``rgb_jpeg``, ``depth_png16_mm``: the input's own bytes,
+        :class:`~rtabmap_ros2.core.sensor.SensorFrame`) is kept as it is instead."""
+        return cls(rgb_jpeg, depth_png16_mm,
+                   None if odom_covariance is None else np.asarray(odom_covariance, dtype=np.float64),
+                   pending=(None if rgb is None or rgb_jpeg is not None else np.array(rgb),
+                            None if depth_m is None or depth_png16_mm is not None else np.array(depth_m)))
 
     def encoded(self) -> "SensorBlobs":
         """These blobs with the pending images encoded (self when none is pending)."""

@@ -320,7 +320,8 @@ class Rtabmap:
                         keypoints=_pinhole_keypoints(features, frame), points3d=points3d, T_odom_base=frame.T_odom_base,
                         scan=frame.scan, camera=frame.camera, bad=bad,
                         depth_points=self._depth_points(frame.depth_m, frame.camera, frame.scan is not None))
-        blobs = SensorBlobs.deferred(frame.rgb, frame.depth_m, frame.odom_covariance)
+        blobs = SensorBlobs.deferred(frame.rgb, frame.depth_m, frame.odom_covariance, frame.rgb_jpeg,
+                                     frame.depth_png16_mm)
         watch.lap("database")
         # Alg. 1 line 7: insert into STM with a neighbour link to the previous location.
         previous = memory.last_location()

@@ -42,15 +42,13 @@ import numpy as np
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.params import SyncParams
-from rtabmap_ros2.core.sensor import CameraModel, LaserScan, SensorFrame
+from rtabmap_ros2.core.sensor import CameraModel, LaserScan, SensorFrame, depth_from_mm, depth_to_mm
 from rtabmap_ros2.core.sync import FrameSynchronizer, SyncedSet
 from rtabmap_ros2.errors import BagError, SensorDataError
 
 logger = logging.getLogger(__name__)
 
 NS_PER_S = 1_000_000_000
-MM_PER_M = 1000.0
-UINT16_MAX = 65535
 
 # Stream names (the keys of FrameSynchronizer sets), in TopicNames' order.
 STREAMS = ("odom", "scan", "rgb", "depth", "camera_info")
@@ -83,6 +81,7 @@ COMPRESSED_DEPTH_FORMAT = "16UC1; compressedDepth png"
 # float32 depthQuantB) before the PNG.
 COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")
 PNG_MAGIC = b"\x89PNG"
+JPEG_MAGIC = b"\xff\xd8\xff"
 
 # Colour encodings (sensor_msgs/image_encodings names, lower case): (channels, dtype, cv2 conversion to
 # RGB). 16-bit ones are scaled to 8 bits first (>> 8). Bayer patterns follow cv_bridge's mapping to
@@ -376,19 +375,6 @@ def depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str = "camera_opt
                  is_bigendian=0, step=w * 2, data=mm.astype("<u2").reshape(-1).view(np.uint8))
 
 
-def depth_to_mm(depth_m: np.ndarray) -> np.ndarray:
-    """HxW uint16 millimetres of an HxW depth (m); NaN and <= 0 become 0 (invalid)."""
-    d = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    return np.clip(np.rint(d * MM_PER_M), 0, UINT16_MAX).astype(np.uint16)
-
-
-def depth_from_mm(mm: np.ndarray) -> np.ndarray:
-    """HxW float32 metres (0 -> NaN) of HxW uint16 millimetres."""
-    d = mm.astype(np.float32) / np.float32(MM_PER_M)
-    d[mm == 0] = np.nan
-    return d
-
-
 def depth_from_msg(msg) -> np.ndarray:
     """HxW float32 depth (m, NaN invalid) of a sensor_msgs/Image 16UC1/mono16 (mm) or 32FC1 (m).
 
@@ -454,6 +440,12 @@ def compressed_depth_from_msg(msg) -> np.ndarray:
     ``16UC1`` payloads hold millimetres; ``32FC1`` payloads hold quantised inverse depth
     ``q`` with ``depth = depthQuantA / (q - depthQuantB)`` (image_transport's encoding).
     """
+    return _compressed_depth(msg)[0]
+
+
+def _compressed_depth(msg) -> tuple[np.ndarray, Optional[bytes]]:
+    """:func:`compressed_depth_from_msg`'s depth, and the payload's PNG when it is what the database
+    stores (millimetres: a 16UC1 payload), else None."""
     raw = _buffer(msg.data).tobytes()
     enc = msg.format.split(";")[0].strip().lower()
     quant_a = quant_b = 0.0
@@ -469,12 +461,12 @@ def compressed_depth_from_msg(msg) -> np.ndarray:
         raise SensorDataError(f"compressedDepth message (format {msg.format!r}) has an unreadable 16-bit PNG",
                               "decode")
     if enc in _DEPTH_MM_ENCODINGS:
-        return depth_from_mm(img)
+        return depth_from_mm(img), png
     if enc in _DEPTH_M_ENCODINGS:
         with np.errstate(divide="ignore", invalid="ignore"):
             d = (quant_a / (img.astype(np.float32) - quant_b)).astype(np.float32)
         d[(img == 0) | ~np.isfinite(d) | (d <= 0)] = np.nan
-        return d
+        return d, None
     raise SensorDataError(f"unsupported compressedDepth encoding {enc!r} in format {msg.format!r}", "encoding")
 
 
@@ -563,6 +555,7 @@ def register_to_rgb(frame: SensorFrame) -> SensorFrame:
         dh, dw = frame.depth_m.shape
         check("depth", "depth", dw, dh)
         frame.depth_m = cv2.resize(frame.depth_m, (w, h), interpolation=cv2.INTER_NEAREST)
+        frame.depth_png16_mm = None   # the input's PNG is of the other size
     if frame.camera is not None and (frame.camera.width, frame.camera.height) != (w, h):
         check("camera_info", "camera_info", frame.camera.width, frame.camera.height)
         frame.camera = frame.camera.scaled(w, h)
@@ -904,13 +897,19 @@ class BagDataset:
             rgb = synced.values.get("rgb")
             if rgb is not None:
                 current = rgb
-                frame.rgb = (compressed_image_from_msg(rgb.msg) if rgb.msgtype == COMPRESSED_TYPE
-                             else image_from_msg(rgb.msg))
+                if rgb.msgtype == COMPRESSED_TYPE:
+                    frame.rgb = compressed_image_from_msg(rgb.msg)
+                    jpeg = _buffer(rgb.msg.data).tobytes()
+                    frame.rgb_jpeg = jpeg if jpeg[:3] == JPEG_MAGIC else None   # a PNG one is stored as JPEG
+                else:
+                    frame.rgb = image_from_msg(rgb.msg)
             depth = synced.values.get("depth")
             if depth is not None:
                 current = depth
-                frame.depth_m = (compressed_depth_from_msg(depth.msg) if depth.msgtype == COMPRESSED_TYPE
-                                 else depth_from_msg(depth.msg))
+                if depth.msgtype == COMPRESSED_TYPE:
+                    frame.depth_m, frame.depth_png16_mm = _compressed_depth(depth.msg)
+                else:
+                    frame.depth_m = depth_from_msg(depth.msg)
             if rgb is not None or depth is not None:
                 info = state["camera_info"]
                 if info is None:

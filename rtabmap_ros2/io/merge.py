@@ -282,9 +282,11 @@ class StoredSession:
 
 
 def _frame(sig, blobs: SensorBlobs) -> SensorFrame:
-    """The frame a stored node was made from (images as stored: JPEG RGB, depth in mm)."""
+    """The frame a stored node was made from (images as stored: JPEG RGB, depth in mm; their bytes
+    stored again as they are, not encoded a second time)."""
     return SensorFrame(stamp_ns=sig.stamp_ns, T_odom_base=sig.T_odom_base, odom_covariance=blobs.odom_covariance,
-                       rgb=blobs.rgb(), depth_m=blobs.depth_m(), camera=sig.camera, scan=sig.scan)
+                       rgb=blobs.rgb(), depth_m=blobs.depth_m(), camera=sig.camera, scan=sig.scan,
+                       rgb_jpeg=blobs.rgb_jpeg, depth_png16_mm=blobs.depth_png16_mm)
 
 
 class _WordTable:

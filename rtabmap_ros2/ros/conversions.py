@@ -32,12 +32,11 @@ from visualization_msgs.msg import Marker, MarkerArray
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Link, LinkType
 from rtabmap_ros2.core.params import flatten
-from rtabmap_ros2.core.sensor import CameraModel, LaserScan
+from rtabmap_ros2.core.sensor import CameraModel, LaserScan, depth_to_mm
 from rtabmap_ros2.errors import SensorDataError
 from rtabmap_ros2.io import bag
 
 NS_PER_S = 1_000_000_000
-MM_PER_M = 1000.0
 
 # Base -> camera optical frame when a CameraInfo arrives without an extrinsic calibration (no tf2
 # here to read one): the bag reader's default, the optical frame at the base origin with the
@@ -202,8 +201,7 @@ def depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str, encoding: st
     if depth_m.ndim != 2:
         raise SensorDataError(f"depth must be HxW, got shape {depth_m.shape}")
     if encoding in ("16UC1", "mono16"):
-        mm = np.nan_to_num(depth_m * np.float32(MM_PER_M), nan=0.0, posinf=0.0, neginf=0.0)
-        pixels = np.clip(np.round(mm), 0, np.iinfo(np.uint16).max).astype("<u2")
+        pixels = depth_to_mm(depth_m).astype("<u2")
     elif encoding == "32FC1":
         pixels = depth_m.astype("<f4")
     else:

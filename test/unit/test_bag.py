@@ -267,3 +267,34 @@ def test_frames_without_valid_depth_or_scan_are_skipped(tmp_path, frames, caplog
     assert "0 valid pixels of" in caplog.text and "1 valid returns of 180" in caplog.text
     lenient = SyncParams(rate_hz=0.0, min_valid_scan_ratio=0.0)
     assert len(list(BagDataset(path, sync=lenient))) == 4   # the one-return scan passes at ratio 0
+
+
+def test_compressed_images_are_stored_as_they_came(tmp_path, frames):
+    """A JPEG CompressedImage and a 16UC1 compressedDepth reach the database as their own bytes (no
+    second JPEG generation, no PNG encoded again); raw images and a depth scaled to the RGB size are
+    encoded; each stored image decodes to the frame that was processed."""
+    from rtabmap_ros2.core.database import decode_depth, decode_rgb
+    from rtabmap_ros2.core.params import Params
+    from rtabmap_ros2.core.rtabmap import Rtabmap
+
+    for f in frames:
+        f.rgb = smooth_rgb(int(f.stamp_ns % 7))
+    compressed = list(BagDataset(write_bag(tmp_path / "compressed", frames, rgb_format="jpeg", depth_format="png"),
+                                 sync=ALL))
+    raw = list(BagDataset(write_bag(tmp_path / "raw", frames), sync=ALL))
+    assert all(f.rgb_jpeg is None and f.depth_png16_mm is None for f in raw)
+    for f in compressed:
+        np.testing.assert_array_equal(decode_rgb(f.rgb_jpeg), f.rgb)
+        np.testing.assert_array_equal(decode_depth(f.depth_png16_mm), f.depth_m)
+    with Rtabmap(Params(), tmp_path / "map.db") as rtabmap:
+        stored = [(f, rtabmap.process(f).location_id) for f in compressed + raw]
+        rtabmap.memory.join()
+        for f, node in stored:
+            blobs = rtabmap.db.load_sensor_blobs(node)
+            if f.rgb_jpeg is not None:
+                assert blobs.rgb_jpeg == f.rgb_jpeg and blobs.depth_png16_mm == f.depth_png16_mm
+            np.testing.assert_array_equal(blobs.depth_m(), f.depth_m)
+            assert np.abs(blobs.rgb().astype(int) - f.rgb).mean() < 3
+    half = SensorFrame(stamp_ns=0, rgb=np.zeros((H, W, 3), np.uint8), depth_m=np.ones((H // 2, W // 2), np.float32),
+                       depth_png16_mm=b"the input's PNG, at half size")
+    assert bag.register_to_rgb(half).depth_png16_mm is None and half.depth_m.shape == (H, W)

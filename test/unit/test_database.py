@@ -551,6 +551,10 @@ def test_depth_encoding_rules():
     assert back.dtype == np.float32
     assert np.isnan(back[0]).all()
     np.testing.assert_allclose(back[1], [0.001, 1.234, 65.535, 65.535], atol=1e-6)  # clipped to 65.535 m
+    # Any float depth: -inf invalid, a huge finite one clipped, a tie rounded as float64 arithmetic does.
+    wide = decode_depth(encode_depth(np.array([[-np.inf, 1e300, np.float32(1.2345), 2.0004999]])))
+    assert np.isnan(wide[0, 0]) and wide[0, 1] == np.float32(65.535)
+    np.testing.assert_allclose(wide[0, 2:], [1.235, 2.0], atol=1e-6)
 
 
 def test_rgb_encoding_rules(rng):
