@@ -412,11 +412,20 @@ def compressed_image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str = "cam
 
 def compressed_image_from_msg(msg) -> np.ndarray:
     """HxWx3 uint8 RGB of a sensor_msgs/CompressedImage (jpeg or png)."""
-    bgr = cv2.imdecode(_buffer(msg.data), cv2.IMREAD_COLOR)
+    return compressed_image_and_jpeg(msg)[0]
+
+
+def compressed_image_and_jpeg(msg) -> tuple[np.ndarray, Optional[bytes]]:
+    """:func:`compressed_image_from_msg`'s image, and the message's bytes when they are a JPEG (as the
+    database stores a node's RGB: kept as they came, :class:`~rtabmap_ros2.core.sensor.SensorFrame`),
+    else None (a PNG one is stored as a JPEG of its pixels)."""
+    data = _buffer(msg.data)
+    bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
     if bgr is None:
         raise SensorDataError(f"cv2 could not decode the compressed image (format {msg.format!r}, {len(msg.data)} bytes)",
                               "decode")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    jpeg = data.tobytes()
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), jpeg if jpeg[:3] == JPEG_MAGIC else None
 
 
 def compressed_depth_of_depth(depth_m: np.ndarray) -> bytes:
@@ -440,12 +449,12 @@ def compressed_depth_from_msg(msg) -> np.ndarray:
     ``16UC1`` payloads hold millimetres; ``32FC1`` payloads hold quantised inverse depth
     ``q`` with ``depth = depthQuantA / (q - depthQuantB)`` (image_transport's encoding).
     """
-    return _compressed_depth(msg)[0]
+    return compressed_depth_and_png(msg)[0]
 
 
-def _compressed_depth(msg) -> tuple[np.ndarray, Optional[bytes]]:
+def compressed_depth_and_png(msg) -> tuple[np.ndarray, Optional[bytes]]:
     """:func:`compressed_depth_from_msg`'s depth, and the payload's PNG when it is what the database
-    stores (millimetres: a 16UC1 payload), else None."""
+    stores (millimetres: a 16UC1 payload; kept as it came), else None."""
     raw = _buffer(msg.data).tobytes()
     enc = msg.format.split(";")[0].strip().lower()
     quant_a = quant_b = 0.0
@@ -898,16 +907,14 @@ class BagDataset:
             if rgb is not None:
                 current = rgb
                 if rgb.msgtype == COMPRESSED_TYPE:
-                    frame.rgb = compressed_image_from_msg(rgb.msg)
-                    jpeg = _buffer(rgb.msg.data).tobytes()
-                    frame.rgb_jpeg = jpeg if jpeg[:3] == JPEG_MAGIC else None   # a PNG one is stored as JPEG
+                    frame.rgb, frame.rgb_jpeg = compressed_image_and_jpeg(rgb.msg)
                 else:
                     frame.rgb = image_from_msg(rgb.msg)
             depth = synced.values.get("depth")
             if depth is not None:
                 current = depth
                 if depth.msgtype == COMPRESSED_TYPE:
-                    frame.depth_m, frame.depth_png16_mm = _compressed_depth(depth.msg)
+                    frame.depth_m, frame.depth_png16_mm = compressed_depth_and_png(depth.msg)
                 else:
                     frame.depth_m = depth_from_msg(depth.msg)
             if rgb is not None or depth is not None:

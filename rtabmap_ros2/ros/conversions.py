@@ -164,6 +164,8 @@ image_from_msg = bag.image_from_msg
 depth_from_msg = bag.depth_from_msg
 compressed_image_from_msg = bag.compressed_image_from_msg
 compressed_depth_from_msg = bag.compressed_depth_from_msg
+compressed_image_and_jpeg = bag.compressed_image_and_jpeg
+compressed_depth_and_png = bag.compressed_depth_and_png
 
 
 def image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str, encoding: str = "rgb8") -> Image:

@@ -90,6 +90,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Callable, Optional
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -257,6 +258,13 @@ def _remove_if_empty(folder: Path) -> None:
         pass
 
 
+def _image_and_bytes(value) -> tuple[Optional[np.ndarray], Optional[bytes]]:
+    """A synchronised image stream's value: a raw topic's pixels, or a compressed topic's pixels and
+    the bytes the database stores as they came (``conv.compressed_image_and_jpeg`` /
+    ``compressed_depth_and_png``; None when they are not what it stores)."""
+    return value if isinstance(value, tuple) else (value, None)
+
+
 class RtabmapNode(Node):
     """The thin ROS 2 layer around :class:`~rtabmap_ros2.core.rtabmap.Rtabmap`."""
 
@@ -357,12 +365,12 @@ class RtabmapNode(Node):
             subs.add("scan", [Candidate(self.resolve_topic_name("scan"), LaserScan, self._scan_from_msg)])
         if p.subscribe_rgb:
             subs.add("rgb", self._image_candidates("rgb/image", "/compressed", conv.image_from_msg,
-                                                   conv.compressed_image_from_msg, p.image_transport))
+                                                   conv.compressed_image_and_jpeg, p.image_transport))
             subs.add("camera_info", [Candidate(self.resolve_topic_name("rgb/camera_info"), CameraInfo,
                                                self._camera_from_msg)])
         if p.subscribe_depth:
             subs.add("depth", self._image_candidates("depth/image", "/compressedDepth", conv.depth_from_msg,
-                                                     conv.compressed_depth_from_msg, p.image_transport))
+                                                     conv.compressed_depth_and_png, p.image_transport))
         subs.refresh()
         if subs.needs_graph:
             self.create_timer(GRAPH_CHECK_PERIOD_S, subs.refresh, callback_group=self._sensor_group)
@@ -459,8 +467,10 @@ class RtabmapNode(Node):
     def _submit(self, synced: SyncedSet, arrival: float) -> None:
         """A synchronised set -> SensorFrame -> the worker's frame queue (oldest dropped when full)."""
         values = synced.values
-        frame = SensorFrame(stamp_ns=synced.stamp_ns, rgb=values.get("rgb"), depth_m=values.get("depth"),
-                            scan=values.get("scan"))
+        rgb, rgb_jpeg = _image_and_bytes(values.get("rgb"))
+        depth, depth_png = _image_and_bytes(values.get("depth"))
+        frame = SensorFrame(stamp_ns=synced.stamp_ns, rgb=rgb, depth_m=depth, scan=values.get("scan"),
+                            rgb_jpeg=rgb_jpeg, depth_png16_mm=depth_png)
         if "odom" in values:
             frame.T_odom_base, frame.odom_covariance = values["odom"]
         if self._needs_camera:

@@ -6,7 +6,8 @@ robot's drivers publish them, and the bag has no /tf_static (there is no tf2 her
 with ``play`` at the node's default parameters (qos auto, image_transport auto: the bag carries
 ``rgb/image/compressed`` and ``depth/image/compressedDepth``), with the mounts given as the
 ``base_to_laser`` / ``base_to_camera`` parameters the exported poses match the ground truth; without
-them they are measurably worse. ``map --set`` takes the same two for a bag without /tf_static.
+them they are measurably worse; the compressed images are stored as they came. ``map --set`` takes
+the same two for a bag without /tf_static.
 """
 
 from __future__ import annotations
@@ -20,6 +21,9 @@ rclpy = pytest.importorskip("rclpy")
 
 from std_srvs.srv import Trigger  # noqa: E402
 
+from rtabmap_ros2.core.database import Database  # noqa: E402
+from rtabmap_ros2.core.params import SyncParams  # noqa: E402
+from rtabmap_ros2.io.bag import BagDataset  # noqa: E402
 from rtabmap_ros2.io.trajectory import ate, read_tum  # noqa: E402
 from rtabmap_ros2.ros.node import RtabmapNode  # noqa: E402
 
@@ -68,6 +72,13 @@ def test_mounts_as_parameters_give_the_ground_truth(context, tmp_path, recording
     assert node.subscriptions_.current["depth"][0].topic == "/depth/image/compressedDepth"
     assert node.frames_processed >= MIN_PROCESSED_RATIO * n_frames, (node.frames_processed, n_frames)
     assert node.mounts.source == "parameters"
+    # The compressed topics' JPEG and compressedDepth PNG are stored as they came, not encoded again.
+    published = [(f.rgb_jpeg, f.depth_png16_mm) for f in BagDataset(bag, sync=SyncParams(rate_hz=0))]
+    assert all(jpeg and png for jpeg, png in published)
+    with Database(tmp_path / "with" / "map.db", read_only=True) as db:
+        stored = [db.load_sensor_blobs(n) for n in db.load_nodes()]
+    assert len(stored) >= MIN_PROCESSED_RATIO * n_frames / 2
+    assert all((blobs.rgb_jpeg, blobs.depth_png16_mm) in published for blobs in stored)
     log = capfd.readouterr().err
     assert log.count("tf2_ros is not available") == 1, log
     assert with_mounts <= ATE_MAX_M
