@@ -19,11 +19,12 @@ from rtabmap_ros2.errors import DatabaseError, SensorDataError
 JPEG_QUALITY = 90  # RGB images are stored as JPEG at this quality (0-100)
 
 
-def encode_rgb(rgb: np.ndarray) -> bytes:
-    """JPEG bytes (quality :data:`JPEG_QUALITY`) of an HxWx3 uint8 image in RGB order."""
+def encode_rgb(rgb: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
+    """JPEG bytes (``quality``, 0-100) of an HxWx3 uint8 image in RGB order: a node's stored RGB, and a
+    CompressedImage's payload (``io.bag``)."""
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise SensorDataError(f"encode_rgb needs an HxWx3 uint8 RGB image, got shape {rgb.shape} dtype {rgb.dtype}")
-    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise SensorDataError(f"OpenCV could not JPEG-encode an image of shape {rgb.shape}")
     return buf.tobytes()
@@ -38,7 +39,8 @@ def decode_rgb(data: bytes) -> np.ndarray:
 
 
 def encode_depth(depth_m: np.ndarray) -> bytes:
-    """16-bit PNG bytes of an HxW depth image (m) stored in millimetres.
+    """16-bit PNG bytes of an HxW depth image (m) stored in millimetres (a node's stored depth, and the
+    PNG of a 16UC1 compressedDepth payload, ``io.bag``).
 
     NaN, inf and values <= 0 become 0 (invalid); depths beyond 65.535 m are clipped to it.
     """

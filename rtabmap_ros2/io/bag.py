@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from rtabmap_ros2.core import transforms
+from rtabmap_ros2.core.database_blobs import JPEG_QUALITY, encode_depth, encode_rgb
 from rtabmap_ros2.core.params import SyncParams
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan, SensorFrame, depth_from_mm, depth_to_mm
 from rtabmap_ros2.core.sync import FrameSynchronizer, SyncedSet
@@ -73,7 +74,6 @@ DEFAULT_BASE_FRAME = "base_link"
 TF_STATIC_TOPIC = "/tf_static"
 COMPRESSED_SUFFIX = "/compressed"
 COMPRESSED_DEPTH_SUFFIX = "/compressedDepth"
-JPEG_QUALITY = 90
 JPEG_FORMAT = "rgb8; jpeg compressed bgr8"
 COMPRESSED_DEPTH_FORMAT = "16UC1; compressedDepth png"
 
@@ -394,20 +394,12 @@ def depth_from_msg(msg) -> np.ndarray:
                           "encoding")
 
 
-def jpeg_of_rgb(rgb: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
-    """JPEG bytes of an HxWx3 uint8 RGB image (the payload of a ``compressed`` CompressedImage)."""
-    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise SensorDataError(f"cv2 could not JPEG-encode an image of shape {rgb.shape}")
-    return buf.tobytes()
-
-
 def compressed_image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str = "camera_optical",
                             quality: int = JPEG_QUALITY, ts=None):
     """sensor_msgs/CompressedImage (jpeg, image_transport's format string) of an HxWx3 RGB image."""
     ts = ts or typestore()
     return _make(ts, COMPRESSED_TYPE, header=_header(stamp_ns, frame_id, ts), format=JPEG_FORMAT,
-                 data=np.frombuffer(jpeg_of_rgb(rgb, quality), dtype=np.uint8).copy())
+                 data=np.frombuffer(encode_rgb(rgb, quality), dtype=np.uint8).copy())
 
 
 def compressed_image_from_msg(msg) -> np.ndarray:
@@ -424,16 +416,13 @@ def compressed_image_and_jpeg(msg) -> tuple[np.ndarray, Optional[bytes]]:
     if bgr is None:
         raise SensorDataError(f"cv2 could not decode the compressed image (format {msg.format!r}, {len(msg.data)} bytes)",
                               "decode")
-    jpeg = data.tobytes()
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), jpeg if jpeg[:3] == JPEG_MAGIC else None
+    jpeg = data.tobytes() if data[:3].tobytes() == JPEG_MAGIC else None
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), jpeg
 
 
 def compressed_depth_of_depth(depth_m: np.ndarray) -> bytes:
     """image_transport's compressedDepth payload (ConfigHeader + 16-bit PNG of millimetres) of a depth (m)."""
-    ok, png = cv2.imencode(".png", depth_to_mm(depth_m))
-    if not ok:
-        raise SensorDataError(f"cv2 could not PNG-encode a depth image of shape {depth_m.shape}")
-    return COMPRESSED_DEPTH_HEADER.pack(0, 0.0, 0.0) + png.tobytes()
+    return COMPRESSED_DEPTH_HEADER.pack(0, 0.0, 0.0) + encode_depth(depth_m)
 
 
 def compressed_depth_to_msg(depth_m: np.ndarray, stamp_ns: int, frame_id: str = "camera_optical", ts=None):

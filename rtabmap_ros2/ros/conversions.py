@@ -31,6 +31,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.graph import Link, LinkType
+from rtabmap_ros2.core.database_blobs import encode_rgb
 from rtabmap_ros2.core.params import flatten
 from rtabmap_ros2.core.sensor import CameraModel, LaserScan, depth_to_mm
 from rtabmap_ros2.errors import SensorDataError
@@ -186,7 +187,7 @@ def image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str, encoding: str = 
 def compressed_image_to_msg(rgb: np.ndarray, stamp_ns: int, frame_id: str) -> CompressedImage:
     """``sensor_msgs/CompressedImage`` (JPEG, image_transport's ``compressed``) of an RGB image."""
     msg = CompressedImage(header=header(stamp_ns, frame_id), format=bag.JPEG_FORMAT)
-    msg.data = bag.jpeg_of_rgb(rgb)
+    msg.data = encode_rgb(rgb)
     return msg
 
 
