@@ -222,6 +222,24 @@ def test_compressed_depth_png_and_32fc1_inverse_depth():
     msg.data = np.frombuffer(bag.COMPRESSED_DEPTH_HEADER.pack(0, quant_a, quant_b) + png, np.uint8)
     back = bag.compressed_depth_from_msg(msg)
     np.testing.assert_allclose(back, depth, rtol=0.03, equal_nan=True)
+    # Inverse depth is not the database's millimetres: its PNG is not kept for storing as it came.
+    assert bag.compressed_depth_and_png(msg)[1] is None
+
+
+def test_corrupt_compressed_images_name_the_problem():
+    """Bytes that do not decode give a clear decode error (the node and the bag reader drop the frame),
+    with or without the stored bytes asked for."""
+    rgb_msg = bag.compressed_image_to_msg(smooth_rgb(0), 1)
+    rgb_msg.data = np.frombuffer(bag.JPEG_MAGIC + b"not a picture", np.uint8)
+    for decode in (bag.compressed_image_from_msg, bag.compressed_image_and_jpeg):
+        with pytest.raises(SensorDataError, match="could not decode the compressed image") as err:
+            decode(rgb_msg)
+        assert err.value.reason == "decode"
+    depth_msg = bag.compressed_depth_to_msg(np.ones((H, W), np.float32), 1)
+    depth_msg.data = np.frombuffer(b"neither a header nor a PNG", np.uint8)
+    for decode in (bag.compressed_depth_from_msg, bag.compressed_depth_and_png):
+        with pytest.raises(SensorDataError, match="holds no PNG"):
+            decode(depth_msg)
 
 
 def test_odometry_scan_camera_transform_pairs(random_se3):
