@@ -588,10 +588,10 @@ def _dcs_scale(factor, values) -> float:
 # of 0.001 (simulated sessions 1-3, seed 9: 6.1 against 10.7 ms a loop closure frame).
 ISAM2_RELINEARIZE_THRESHOLD = 0.003
 # Extra iSAM2 updates after the one that added the frame's factors, at most: each relinearises
-# and re-solves the affected part once more (Gauss-Newton steps), until no pose moves by more than
-# ISAM2_CONVERGENCE (m or rad).
+# the variables whose update exceeds ISAM2_RELINEARIZE_THRESHOLD and re-solves the affected part
+# (Gauss-Newton steps), until one relinearises nothing (the linear system no longer changes, so
+# neither would the estimate).
 ISAM2_EXTRA_UPDATES = 4
-ISAM2_CONVERGENCE = 1e-4
 
 
 class IncrementalOptimizer:
@@ -615,6 +615,8 @@ class IncrementalOptimizer:
         self._isam = None
         self._nodes: set[int] = set()
         self._links: dict[tuple[int, int], Link] = {}  # every link held, active or rejected
+        self._held: dict[int, tuple[int, int]] = {}  # id() of each held link -> its key
+        self._loops: dict[tuple[int, int], Link] = {}  # the loop closures among them
         self._factor: dict[tuple[int, int], int] = {}  # active link key -> iSAM2 factor index
         self._values = None  # the current estimate (gtsam Values)
         self._vectors = None  # its poses as extracted (_estimate_vectors), None until asked
@@ -640,7 +642,8 @@ class IncrementalOptimizer:
         isam_params.relinearizeSkip = 1
         self._isam = gtsam.ISAM2(isam_params)
         self._nodes = set(poses)
-        self._links = {link.key(): link for link in used}
+        self._links, self._held, self._loops = {}, {}, {}
+        self._hold(used)
         self._factor = {}
         values = gtsam.Values()
         for node_id, pose in zip(poses, _gtsam_poses(np.stack(list(poses.values())), self.planar)):
@@ -665,8 +668,11 @@ class IncrementalOptimizer:
         start = time.perf_counter()
         if self._isam is None or not self._nodes <= component:
             return None
-        by_key = {link.key(): link for link in links if link.from_id != link.to_id}
-        gone = [key for key, link in self._links.items() if by_key.get(key) is not link]
+        # What changed since the last solution, by identity (links are immutable: a link replaced
+        # is a new object): a frame changes a few links of ~2,000, and comparing them key by key
+        # was a third of a loop closure frame's bookkeeping (issue 50).
+        current = set(map(id, links))
+        gone = sorted(self._held[i] for i in self._held.keys() - current)
         if any(not self._links[key].type.is_loop_closure for key in gone):
             return None  # a neighbour link changed or left: not what a frame does
         new_nodes = component - self._nodes
@@ -680,18 +686,16 @@ class IncrementalOptimizer:
                                                                  np.stack([guess[n] for n in ids])), self.planar)):
                 values.insert(node_id, pose)
         remove = [self._factor.pop(key) for key in gone if key in self._factor]
-        for key in gone:
-            del self._links[key]
-        rejected_keys = {key for key in self._links if key not in self._factor}
-        fresh = [link for key, link in by_key.items() if key not in self._links]
+        self._release(gone)
+        rejected_keys = [key for key in self._links if key not in self._factor]
+        fresh = [link for link in links if id(link) not in self._held and link.from_id != link.to_id]
         graph = gtsam.NonlinearFactorGraph()
         for factor in self._factors(fresh):
             graph.add(factor)
-        self._update(graph, values, remove, fresh)
+        iterations = self._update(graph, values, remove, fresh)
         self._nodes |= new_nodes
-        self._links.update((link.key(), link) for link in fresh)
+        self._hold(fresh)
         rejected = [self._links[key] for key in rejected_keys]
-        iterations = self._converge()
         switched_off: list[Link] = []
         if self.params.robust:
             rejected, switched_off, more = self._robust_rounds(component, rejected)
@@ -703,6 +707,21 @@ class IncrementalOptimizer:
         aligned = np.einsum("ij,njk->nik", align, stacked)
         return OptimizationResult(dict(zip(keys, aligned)), float("nan"), float("nan"), iterations, rejected,
                                   time.perf_counter() - start, switched_off, PoseStack.of_arrays(np.array(keys), aligned))
+
+    def _hold(self, links: list[Link]) -> None:
+        """Hold ``links`` (their keys not held yet)."""
+        for link in links:
+            key = link.key()
+            self._links[key] = link
+            self._held[id(link)] = key
+            if link.type.is_loop_closure:
+                self._loops[key] = link
+
+    def _release(self, keys: list[tuple[int, int]]) -> None:
+        """Stop holding the links of ``keys``."""
+        for key in keys:
+            del self._held[id(self._links.pop(key))]
+            self._loops.pop(key, None)
 
     def _prior(self, node_id: int, pose: np.ndarray):
         import gtsam
@@ -717,10 +736,15 @@ class IncrementalOptimizer:
         return [_cached("robust factor", link, self.planar, _robust_factor)
                 if self.params.robust and link.type.is_loop_closure else plain[id(link)] for link in links]
 
-    def _update(self, graph, values, remove: list[int], added: list[Link]) -> None:
+    def _update(self, graph, values, remove: list[int], added: list[Link]) -> int:
+        """One iSAM2 update with the factors of ``added`` in ``graph``, the new ``values`` and the
+        factors ``remove`` removed, then the extra updates that converge it (:meth:`_converge`) and
+        the estimate; returns how many extra updates."""
         result = self._isam.update(graph, values, remove)
         self._factor.update(zip((link.key() for link in added), list(result.getNewFactorsIndices())))
+        iterations = self._converge()
         self._set_estimate()
+        return iterations
 
     def _set_estimate(self) -> None:
         self._values = self._isam.calculateEstimate()
@@ -737,15 +761,12 @@ class IncrementalOptimizer:
         return list(self._values.keys()), _stack_of_vectors(self._estimate_vectors(), self.planar)
 
     def _converge(self) -> int:
-        """Further iSAM2 updates (relinearisation and Gauss-Newton steps) until the poses settle."""
-        before = self._estimate_vectors()
+        """Further iSAM2 updates (relinearisation and Gauss-Newton steps) until one relinearises no
+        variable. The estimate is not read between them: calculating and extracting the poses of a
+        1,600-node map after each update was a third of a long loop closure's solve (issue 50)."""
         for done in range(1, ISAM2_EXTRA_UPDATES + 1):
-            self._isam.update()
-            self._set_estimate()
-            after = self._estimate_vectors()
-            if np.abs(after - before).max(initial=0.0) < ISAM2_CONVERGENCE:
+            if self._isam.update().getVariablesRelinearized() == 0:
                 return done
-            before = after
         return ISAM2_EXTRA_UPDATES
 
     def _robust_rounds(self, component: set[int], rejected: list[Link]) -> tuple[list[Link], list[Link], int]:
@@ -755,7 +776,7 @@ class IncrementalOptimizer:
         import gtsam
 
         threshold = self.params.robust_reject_scale
-        loops = [link for link in self._links.values() if link.type.is_loop_closure]
+        loops = list(self._loops.values())
         plain = _plain_factors(loops, self.planar)
         iterations = 0
         for _ in range(ROBUST_ROUNDS):
@@ -780,8 +801,8 @@ class IncrementalOptimizer:
             graph = gtsam.NonlinearFactorGraph()
             for factor in self._factors(good_again):
                 graph.add(factor)
-            self._update(graph, gtsam.Values(), [self._factor.pop(link.key()) for link in dropped], good_again)
-            iterations += 1 + self._converge()
+            iterations += 1 + self._update(graph, gtsam.Values(), [self._factor.pop(link.key()) for link in dropped],
+                                           good_again)
         else:
             scales = {link.key(): _dcs_scale(plain[id(link)], self._values) for link in loops}
         out = {link.key() for link in rejected}
