@@ -709,9 +709,11 @@ class IncrementalOptimizer:
                                   time.perf_counter() - start, switched_off, PoseStack.of_arrays(np.array(keys), aligned))
 
     def _hold(self, links: list[Link]) -> None:
-        """Hold ``links`` (their keys not held yet)."""
+        """Hold ``links`` (a link of a key already held replaces it)."""
         for link in links:
             key = link.key()
+            if key in self._links:
+                del self._held[id(self._links[key])]
             self._links[key] = link
             self._held[id(link)] = key
             if link.type.is_loop_closure:

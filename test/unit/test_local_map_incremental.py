@@ -369,3 +369,31 @@ def test_the_incremental_solve_drops_a_loop_closure_the_rest_of_the_graph_contra
         assert len(batch) == 1
     finally:
         rtabmap.close()
+
+
+def test_a_replaced_loop_closure_is_re_solved_and_a_replaced_neighbour_link_restarts_the_solve():
+    """The solve tells the links it holds from the frame's by identity: a loop closure replaced by
+    a new one of the same two nodes (RTAB-Map refines a link in place) gives the batch solution of
+    the new links, the old one no longer pulling; a neighbour link replaced is not what a frame does,
+    and the solve declines (None: the caller solves in batch)."""
+    poses, links = _square_laps()
+    params = Params().graph
+    root = max(poses)
+    root_pose = poses[root]
+    guess = chain_poses(root, root_pose, links)
+    first = optimize(guess, links, root, params, planar=True)
+    solver = IncrementalOptimizer(params, planar=True)
+    solver.reset(first.poses, links, {link.key() for link in first.rejected})
+    loop = next(i for i, link in enumerate(links) if link.type.is_loop_closure)
+    moved = replace(links[loop], T_from_to=links[loop].T_from_to @ transforms.from_xy_yaw(0.05, 0.0, 0.0))
+    relinked = links[:loop] + [moved] + links[loop + 1:]
+    result = solver.solve(set(poses), relinked, root, root_pose, first.poses)
+    assert result is not None
+    batch = optimize(first.poses, relinked, root, params, planar=True)
+    dt, dr = _difference(result.poses, batch.poses)
+    assert dt < INCREMENTAL_TOLERANCE_M and dr < INCREMENTAL_TOLERANCE_RAD, (dt, dr)
+    # The 5 cm moved the solution: the old link is out of it.
+    assert _difference(result.poses, first.poses)[0] > 10 * INCREMENTAL_TOLERANCE_M
+    neighbour = next(i for i, link in enumerate(relinked) if not link.type.is_loop_closure)
+    renewed = relinked[:neighbour] + [replace(relinked[neighbour])] + relinked[neighbour + 1:]
+    assert solver.solve(set(poses), renewed, root, root_pose, result.poses) is None
