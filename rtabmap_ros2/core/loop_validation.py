@@ -33,7 +33,7 @@ import numpy as np
 from rtabmap_ros2.core import transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis
 from rtabmap_ros2.core.graph import (Link, LinkTable, LinkType, PoseStack, agree, agree_many, bridges,
-                                     default_information, loop_type, residuals)
+                                     default_information, loop_type, residuals, rigid_products)
 from rtabmap_ros2.core.grid import scan_conflict
 from rtabmap_ros2.core.memory import Memory
 from rtabmap_ros2.core.params import Params
@@ -351,7 +351,7 @@ def max_error_ratio(poses: PoseStack | Mapping[int, np.ndarray], links: list[Lin
             was = before_stack.residuals(rows_before[had], T_inverse[had])
             # How far each error moved: inv(was) @ now (its translation is R_was' (t_now - t_was)).
             t_was, r_was = error_sizes(was, planar)
-            t_moved, r_moved = error_sizes(transforms.inverse_many(was) @ residual[had], planar)
+            t_moved, r_moved = error_sizes(rigid_products(None, was, residual[had]), planar)
             t_err[had] = np.where(t_err[had] > t_was, np.minimum(t_err[had], t_moved), 0.0)
             r_err[had] = np.where(r_err[had] > r_was, np.minimum(r_err[had], r_moved), 0.0)
     info = table.information_diagonal[inside]

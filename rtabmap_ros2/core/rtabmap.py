@@ -33,6 +33,7 @@ from rtabmap_ros2.core import registration, transforms
 from rtabmap_ros2.core.bayes import BayesFilter, Hypothesis, likelihood
 from rtabmap_ros2.core.database import Database, SensorBlobs
 from rtabmap_ros2.core.features import FeatureExtractor, Features
+from rtabmap_ros2.core.graph import warm_up_residuals
 from rtabmap_ros2.core.grid import DepthPoints, OccupancyGrid, depth_points, grid_sources
 from rtabmap_ros2.core.heap import collection_deferred, release_free_heap
 from rtabmap_ros2.core.local_map import LocalMap, LocalMapper
@@ -76,6 +77,7 @@ class Rtabmap:
     def _open(self) -> None:
         load_backend()
         registration.warm_up()  # RANSAC and ICP compiled or loaded here rather than in a frame
+        warm_up_residuals()  # the error check's residuals, likewise
         self.db = Database(self.database_path)
         self.db.set_parameters(self.params.to_dict())
         self.memory = Memory(self.params, self.db, self.extractor.binary)

@@ -110,3 +110,15 @@ def test_hops_cross_free_link_types_without_counting():
     assert graph.hops_from(2, 2, free=loops) == {2: 0, 11: 0, 1: 1, 3: 1, 10: 1, 12: 1, 4: 2, 20: 2}
     assert graph.hops_from(1, 1, free=loops) == {1: 0, 2: 1, 11: 1}
     assert graph.hops_from(12, 3, types=(LinkType.NEIGHBOR,), free=loops) == {12: 0, 11: 1, 10: 2}
+
+
+def test_rigid_products_equal_the_matrix_products():
+    """The compiled L @ inv(A) @ B (and inv(A) @ B) of rigid transforms is numpy's 4x4 product."""
+    from rtabmap_ros2.core.graph import rigid_products
+
+    rng = np.random.default_rng(3)
+    L, A, B = (np.stack([transforms.from_xyz_rpy(rng.normal(size=6)) for _ in range(50)]) for _ in range(3))
+    expected = L @ np.linalg.inv(A) @ B
+    assert np.allclose(rigid_products(L, A, B), expected, atol=1e-12)
+    assert np.allclose(rigid_products(None, A, B), np.linalg.inv(A) @ B, atol=1e-12)
+    assert rigid_products(None, A[:0], B[:0]).shape == (0, 4, 4)
