@@ -619,13 +619,11 @@ class IncrementalOptimizer:
         self._loops: dict[tuple[int, int], Link] = {}  # the loop closures among them
         self._factor: dict[tuple[int, int], int] = {}  # active link key -> iSAM2 factor index
         self._values = None  # the current estimate (gtsam Values)
-        self._vectors = None  # its poses as extracted (_estimate_vectors), None until asked
 
     def invalidate(self) -> None:
         """Forget the solution: the next ``solve`` returns None (the caller solves in batch)."""
         self._isam = None
         self._values = None
-        self._vectors = None
 
     def holds(self, nodes: Collection[int]) -> bool:
         """True when any of ``nodes`` is a variable of the solution held."""
@@ -700,7 +698,7 @@ class IncrementalOptimizer:
         if self.params.robust:
             rejected, switched_off, more = self._robust_rounds(component, rejected)
             iterations += more
-        keys, stacked = self._estimate_stack()
+        keys, stacked = _pose_stack(self._values, self.planar)
         if self.planar:
             root_pose = transforms.project_planar(root_pose)
         align = root_pose @ transforms.inverse(stacked[keys.index(root_id)])
@@ -750,17 +748,6 @@ class IncrementalOptimizer:
 
     def _set_estimate(self) -> None:
         self._values = self._isam.calculateEstimate()
-        self._vectors = None  # _pose_vectors of _values, read once (_estimate_vectors)
-
-    def _estimate_vectors(self) -> np.ndarray:
-        """:func:`_pose_vectors` of the current estimate, extracted once per estimate."""
-        if self._vectors is None:
-            self._vectors = _pose_vectors(self._values, self.planar)
-        return self._vectors
-
-    def _estimate_stack(self) -> tuple[list[int], np.ndarray]:
-        """:func:`_pose_stack` of the current estimate, from its extracted vectors."""
-        return list(self._values.keys()), _stack_of_vectors(self._estimate_vectors(), self.planar)
 
     def _converge(self) -> int:
         """Further iSAM2 updates (relinearisation and Gauss-Newton steps) until one relinearises no
