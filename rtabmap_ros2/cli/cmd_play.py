@@ -56,9 +56,10 @@ def run(args: argparse.Namespace) -> int:
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = Node("rtabmap_play")
     try:
-        stats = play_bag(args.bag, node, rate=args.rate, loop=args.loop, topics=args.topics, clock=args.clock,
-                         start_offset_s=args.start_offset, delay_s=args.delay, stop=stop,
-                         ack_timeout_s=ACK_TIMEOUT_S if args.ack_timeout is None else args.ack_timeout)
+        stats = _in_worker_thread(lambda: play_bag(
+            args.bag, node, rate=args.rate, loop=args.loop, topics=args.topics, clock=args.clock,
+            start_offset_s=args.start_offset, delay_s=args.delay, stop=stop,
+            ack_timeout_s=ACK_TIMEOUT_S if args.ack_timeout is None else args.ack_timeout))
         for topic, count in sorted(stats.published.items()):
             log.info("%s: %d messages", topic, count)
         if args.clock:
@@ -71,3 +72,31 @@ def run(args: argparse.Namespace) -> int:
         if profile is not None:
             os.unlink(profile)
     return 0
+
+
+def _in_worker_thread(play):
+    """``play()`` run on another thread while this (main) thread only waits for it; its result or exception.
+
+    The Ctrl-C handler sets the playback's ``threading.Event``, and Python runs signal handlers on
+    the main thread between two bytecodes. Had the main thread been the one playing, a signal
+    arriving while it was inside ``Event.wait`` (which holds the Event's non-reentrant lock around
+    the wait) would run ``Event.set`` there and block for ever on that same lock: the CLI hung
+    after Ctrl-C once in CI. Waiting in ``Thread.join`` holds no lock the handler needs.
+    """
+    import threading
+
+    outcome = {}
+
+    def target():
+        try:
+            outcome["result"] = play()
+        except BaseException as exc:  # noqa: BLE001 - re-raised on the main thread below
+            outcome["error"] = exc
+
+    worker = threading.Thread(target=target, name="rtabmap_play", daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(0.1)
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["result"]
