@@ -30,9 +30,11 @@ PROCESS_TIMEOUT_S = 30.0
 
 
 def play_into_node(context, bag: Path, params: dict[str, Any], seconds: Optional[float] = None,
-                   before_destroy: Optional[Callable[[RtabmapNode], Any]] = None) -> tuple[RtabmapNode, Any]:
-    """Play ``bag`` (its first ``seconds``, or all of it, every message acknowledged) into a node
-    with ``params``; wait until every synchronised set is processed; call ``before_destroy(node)``;
+                   before_destroy: Optional[Callable[[RtabmapNode], Any]] = None,
+                   rate: float = PLAY_RATE) -> tuple[RtabmapNode, Any]:
+    """Play ``bag`` (its first ``seconds`` of wall time, or all of it, every message acknowledged)
+    into a node with ``params`` at ``rate`` (faster: fewer sets synchronised, see PLAY_RATE); wait
+    until every synchronised set is processed; call ``before_destroy(node)``;
     destroy the node (its database is closed). Returns the node and what ``before_destroy`` returned."""
     node = RtabmapNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
     player = Node("player", context=context)
@@ -45,7 +47,7 @@ def play_into_node(context, bag: Path, params: dict[str, Any], seconds: Optional
         with spinning(executor):
             if timer:
                 timer.start()
-            stats = play_bag(bag, player, rate=PLAY_RATE, delay_s=1.5, stop=stop)
+            stats = play_bag(bag, player, rate=rate, delay_s=1.5, stop=stop)
             assert timer or not stats.unacknowledged, stats
             deadline = time.monotonic() + PROCESS_TIMEOUT_S
             while time.monotonic() < deadline and node.frames_processed + node.frames_dropped < node._sync.emitted:
