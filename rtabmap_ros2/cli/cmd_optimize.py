@@ -9,7 +9,8 @@ factorisation, ``auto`` reaches the same optimum in 2 + 9 (``bench/bench_optimiz
 are read as GTSAM's ``readG2o`` reads them (:mod:`rtabmap_ros2.io.g2o`), so the chi2 is GTSAM's.
 Prints the initial and final chi2 (sum of whitened squared errors), the iterations and the time.
 OUT is IN with the optimised vertices: the vertex lines first, then IN's other lines as they are
-(edges byte for byte; with ``--robust``, the rejected loop closures left out).
+(g2o's edges byte for byte, TORO's written as g2o's; with ``--robust``, the rejected loop closures
+left out).
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ def add_parser(subparsers) -> None:
         "optimize", help="optimise a g2o pose graph (gtsam), root = first vertex",
         description=__doc__.splitlines()[0],
         epilog="The root, held fixed at its pose in the file, is the vertex with the lowest id.")
-    parser.add_argument("input", help="g2o file (VERTEX_SE2/EDGE_SE2 or VERTEX_SE3:QUAT/EDGE_SE3:QUAT)")
+    parser.add_argument("input", help="pose graph: g2o (VERTEX_SE2/EDGE_SE2 or VERTEX_SE3:QUAT/EDGE_SE3:QUAT) or "
+                                      "TORO (VERTEX2/EDGE2 or VERTEX3/EDGE3, e.g. a .graph file)")
     parser.add_argument("output", help="g2o file written with the optimised vertices and the kept edges")
     parser.add_argument("--optimizer", choices=["auto", "lm", "gn", "dogleg"], default="auto",
                         help="auto (default): Levenberg-Marquardt at GTSAM's defaults (what the graph SLAM uses), "
@@ -48,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
     params = GraphParams(optimizer=args.optimizer, iterations=args.iterations, robust=args.robust)
     result = optimize(poses, links, root, params, planar, cache=False)
     rejected = {id(link) for link in result.rejected}  # the same Link objects as in ``links``
-    write_optimised(args.input, args.output, result.poses, planar, [id(link) not in rejected for link in links])
+    write_optimised(args.input, args.output, result.poses, planar, links,
+                    [id(link) not in rejected for link in links])
     print(f"graph: {len(poses)} {'SE2' if planar else 'SE3'} vertices, {len(links)} edges, root {root}")
     print(f"optimizer: {args.optimizer}{' + DCS' if args.robust else ''}")
     print(f"chi2 initial: {result.chi2_initial:.6g}")

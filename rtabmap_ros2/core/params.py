@@ -410,8 +410,8 @@ class GraphParams:
 
     optimizer: str = _p("lm", "Pose graph solver (gtsam): lm (Levenberg-Marquardt), gn (Gauss-Newton), "
                         "dogleg (Powell's, from a wide trust region; LM where the Gauss-Newton system is singular), "
-                        "auto (LM, dogleg once LM's damping fails in two iterations running: the default of "
-                        "rtabmap-ros2 optimize)")
+                        "auto (LM, dogleg once LM's damping, raised above its initial value, fails in two "
+                        "iterations running: the default of rtabmap-ros2 optimize)")
     iterations: int = _p(100, "Maximum optimiser iterations", "iterations")
     robust: bool = _p(True, "Dynamic covariance scaling on loop closures; drop those it rejects")
     incremental: bool = _p(True, "Local map: continue the last solution with gtsam's iSAM2 (the frame's nodes and links "

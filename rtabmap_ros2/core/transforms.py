@@ -107,14 +107,22 @@ def from_xyz_rpy(xyz_rpy) -> np.ndarray:
     values = np.asarray(xyz_rpy, dtype=np.float64).reshape(-1)
     if values.size != 6 or not np.all(np.isfinite(values)):
         raise ValueError(f"expected 6 finite numbers [x, y, z, roll, pitch, yaw], got {list(values)}")
-    cr, sr = np.cos(values[3]), np.sin(values[3])
-    cp, sp = np.cos(values[4]), np.sin(values[4])
-    cy, sy = np.cos(values[5]), np.sin(values[5])
-    T = np.eye(4)
-    T[:3, :3] = [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                 [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                 [-sp, cp * sr, cp * cr]]
-    T[:3, 3] = values[:3]
+    return from_xyz_rpys(values)[0]
+
+
+def from_xyz_rpys(xyz_rpy: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) transforms of (n, 6) ``[x, y, z, roll, pitch, yaw]`` rows: :func:`from_xyz_rpy`
+    on many at once (no check)."""
+    v = np.asarray(xyz_rpy, dtype=np.float64).reshape(-1, 6)
+    cr, sr = np.cos(v[:, 3]), np.sin(v[:, 3])
+    cp, sp = np.cos(v[:, 4]), np.sin(v[:, 4])
+    cy, sy = np.cos(v[:, 5]), np.sin(v[:, 5])
+    T = np.zeros((len(v), 4, 4))
+    T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    T[:, 2, 0], T[:, 2, 1], T[:, 2, 2] = -sp, cp * sr, cp * cr
+    T[:, :3, 3] = v[:, :3]
+    T[:, 3, 3] = 1.0
     return T
 
 

@@ -135,3 +135,86 @@ def test_numbers_only_python_reads_are_read_line_by_line(tmp_path):
     path.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1_0.0 0 0\nEDGE_SE2 0 1 10 0 0 100 0 0 100 0 400\n")
     poses, links, planar = read_g2o(path)
     assert planar and poses[1][0, 3] == 10.0 and len(links) == 1
+
+
+# -- TORO's elements -------------------------------------------------------------------------------
+
+def _toro_graph(path, order: str) -> None:
+    """A triangle of VERTEX2 / EDGE2 with the information xx 10, xy 1, xt 2, yy 20, yt 3, tt 30
+    written in g2o's or TORO's order."""
+    info = "10 1 2 20 3 30" if order == "g2o" else "10 1 20 30 2 3"
+    path.write_text("VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0.1\nVERTEX2 2 1 1 1.6\n"
+                    f"EDGE2 0 1 1 0 0.1 {info}\nEDGE2 1 2 0 1 1.5 {info}\nEDGE2 2 0 -1 1 -1.6 {info}\n")
+
+
+def test_toro_2d_information_order_is_told_from_the_numbers(tmp_path, caplog):
+    """EDGE2's six numbers in g2o's or TORO's order give the same links: the order is the one whose
+    matrices are positive definite (both have non-zero diagonals here), named in the log."""
+    links = {}
+    for order in ("g2o", "toro"):
+        path = tmp_path / f"{order}.txt"
+        _toro_graph(path, order)
+        with caplog.at_level(logging.INFO, logger="rtabmap_ros2.io.g2o"):
+            poses, links[order], planar = read_g2o(path)
+        assert planar and len(poses) == 3
+        assert ("TORO's" if order == "toro" else "g2o's") in caplog.text
+        caplog.clear()
+    expected = np.array([[10, 1, 2], [1, 20, 3], [2, 3, 30]], dtype=float)
+    for a, b in zip(links["g2o"], links["toro"]):
+        assert np.array_equal(a.information, b.information) and np.array_equal(a.T_from_to, b.T_from_to)
+        assert np.array_equal(a.information[np.ix_([0, 1, 5], [0, 1, 5])], expected)
+
+
+def test_toro_2d_unit_information_of_a_graph_file(tmp_path):
+    """TORO's '1 0 1 1 0 0' (w10000.graph) is the identity; in g2o's order it has a zero diagonal."""
+    path = tmp_path / "w.graph"
+    path.write_text("VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\nEDGE2 1 0 -1 0 0 1 0 1 1 0 0\nEQUIV 1 0\n")
+    _, links, _ = read_g2o(path)
+    assert np.array_equal(links[0].information[np.ix_([0, 1, 5], [0, 1, 5])], np.eye(3))
+
+
+def test_toro_2d_orders_mixed_in_one_file_is_an_error(tmp_path):
+    path = tmp_path / "mixed.g2o"
+    path.write_text("EDGE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE2 1 2 1 0 0 1 0 1 1 0 0\n")
+    with pytest.raises(OptimizationError, match=r"mixed.g2o:1: .*only g2o's order.*line 2 fits only TORO's"):
+        read_g2o(path)
+
+
+def test_toro_3d_elements(tmp_path):
+    """VERTEX3 / EDGE3 are x y z roll pitch yaw (R = Rz Ry Rx); an EDGE3 without information gets the identity."""
+    upper = " ".join(str(v) for v in (np.eye(6) * np.arange(1, 7))[np.triu_indices(6)])
+    path = tmp_path / "s.graph"
+    path.write_text("VERTEX3 0 0 0 0 0 0 0\nVERTEX3 1 1 2 3 0.1 -0.2 0.3\n"
+                    f"EDGE3 0 1 1 2 3 0.1 -0.2 0.3 {upper}\nEDGE3 1 0 -1 0 0 0 0 0\n")
+    poses, links, planar = read_g2o(path)
+    assert not planar
+    assert np.allclose(poses[1], transforms.from_xyz_rpy([1, 2, 3, 0.1, -0.2, 0.3]))
+    assert np.allclose(links[0].T_from_to, poses[1])
+    assert np.array_equal(links[0].information, np.diag(np.arange(1.0, 7.0)))
+    assert np.array_equal(links[1].information, np.eye(6))
+
+
+def test_equivalent_vertices_are_not_constraints_and_the_log_says_which_no_edge_joins(tmp_path, caplog):
+    path = tmp_path / "e.graph"
+    path.write_text("VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\nVERTEX2 2 2 0 0\n"
+                    "EDGE2 0 1 1 0 0 1 0 1 1 0 0\nEDGE2 1 2 1 0 0 1 0 1 1 0 0\nEQUIV 1 0\nEQUIV 2 0\n")
+    with caplog.at_level(logging.WARNING, logger="rtabmap_ros2.io.g2o"):
+        _, links, _ = read_g2o(path)
+    assert len(links) == 2
+    assert "2 EQUIV line(s)" in caplog.text and "1 join vertices no edge joins, e.g. 2 and 0" in caplog.text
+
+
+def test_a_toro_file_is_written_back_as_g2o(tmp_path):
+    from rtabmap_ros2.io.g2o import write_optimised
+
+    src = tmp_path / "t.graph"
+    _toro_graph(src, "toro")
+    poses, links, planar = read_g2o(src)
+    out = tmp_path / "out.g2o"
+    write_optimised(src, out, poses, planar, links, [True, False, True])
+    text = out.read_text()
+    assert "EDGE2" not in text and text.count("EDGE_SE2") == 2 and text.count("VERTEX_SE2") == 3
+    _, written, _ = read_g2o(out)
+    for a, b in zip(written, [links[0], links[2]]):
+        assert (a.from_id, a.to_id) == (b.from_id, b.to_id)
+        assert np.allclose(a.information, b.information) and np.allclose(a.T_from_to, b.T_from_to, atol=1e-8)
