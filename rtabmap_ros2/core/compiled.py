@@ -1,4 +1,5 @@
-"""numba compilation shared by the core's compiled loops (kdtree.py, nearest.py)."""
+"""numba compilation shared by the core's compiled loops (kdtree.py, nearest.py, icp.py, registration.py,
+graph_compiled.py)."""
 
 from __future__ import annotations
 

@@ -17,7 +17,6 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from rtabmap_ros2.core import transforms
-from rtabmap_ros2.core.compiled import jit
 
 
 class LinkType(str, Enum):
@@ -391,44 +390,18 @@ def rigid_products(L: np.ndarray | None, A: np.ndarray, B: np.ndarray) -> np.nda
 
     Compiled, on the rotation and translation blocks: a loop closure frame's error check takes
     these of its ~2,000 links three times, and numpy's stacked 4x4 products were 4-5 ms of it
-    (issue 50)."""
+    (issue 50). The kernel's module is imported here, not with this one: importing numba cost
+    every ``rtabmap-ros2 optimize`` process 0.47 s, which never calls it."""
+    from rtabmap_ros2.core.graph_compiled import rigid_products_into
+
     A = np.ascontiguousarray(A, dtype=np.float64)
     B = np.ascontiguousarray(B, dtype=np.float64)
     out = np.empty((len(A), 4, 4))
     if L is None:
-        _rigid_products(A, A, B, False, out)
+        rigid_products_into(A, A, B, False, out)
     else:
-        _rigid_products(np.ascontiguousarray(L, dtype=np.float64), A, B, True, out)
+        rigid_products_into(np.ascontiguousarray(L, dtype=np.float64), A, B, True, out)
     return out
-
-
-@jit()
-def _rigid_products(L, A, B, left, out):  # pragma: no cover - compiled (rigid_products)
-    P = np.empty((3, 4))  # inv(A) @ B's top rows: [R_a' R_b | R_a' (t_b - t_a)]
-    for n in range(A.shape[0]):
-        for i in range(3):
-            d = 0.0
-            for k in range(3):
-                d += A[n, k, i] * (B[n, k, 3] - A[n, k, 3])
-            P[i, 3] = d
-            for j in range(3):
-                d = 0.0
-                for k in range(3):
-                    d += A[n, k, i] * B[n, k, j]
-                P[i, j] = d
-        for i in range(3):
-            for j in range(4):
-                if left:
-                    d = L[n, i, 3] if j == 3 else 0.0
-                    for k in range(3):
-                        d += L[n, i, k] * P[k, j]
-                    out[n, i, j] = d
-                else:
-                    out[n, i, j] = P[i, j]
-        out[n, 3, 0] = 0.0
-        out[n, 3, 1] = 0.0
-        out[n, 3, 2] = 0.0
-        out[n, 3, 3] = 1.0
 
 
 def warm_up_residuals() -> None:
