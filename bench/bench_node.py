@@ -33,9 +33,9 @@
    --laser-mount ... --camera-mount ... --no-tf-static`` (two full sessions, 640x480 rgb8 + 16UC1
    depth, LaserScan and odometry at 2 Hz, the second session's odometry restarting at identity,
    sensors off the base given as the node's ``base_to_laser`` / ``base_to_camera``), played by
-   ``rtabmap-ros2 play --rate R`` into one node at its defaults, at R = 1, 2 and 4 (``--rates``).
-   Reported per rate: frames played (RGB messages), sets synchronised at the detection rate (1 Hz of
-   bag time), the frames ``map`` makes of the same bags at the same rate (the "1 Hz frames"), frames
+   ``rtabmap-ros2 play --rate R`` into one node at its defaults, at R = 1, 2 and 4 (``--rates``;
+   ``--recording-seed`` another building and drive). Reported per rate: frames played (RGB
+   messages), sets synchronised at the detection rate (1 Hz of bag time), the frames ``map`` makes of the same bags at the same rate (the "1 Hz frames"), frames
    processed, dropped from the worker's queue, became nodes (and rehearsal merges), the worker's
    time per frame by part (``FrameTimes``: median / p95 / max; ``total`` is the worker's critical
    path, the other threads' parts beside it) against the period of the 1 Hz frames at that rate,
@@ -288,13 +288,13 @@ def node_params():
     return defaults()
 
 
-def make_recording(out: Path) -> list[Path]:
-    """Issue 50's input in ``out`` (simulated when ``out`` has no ground truth yet): the bags."""
+def make_recording(out: Path, seed: int = RECORDING_SEED) -> list[Path]:
+    """Issue 50's input in ``out`` (simulated with ``seed`` when ``out`` has no ground truth yet): the bags."""
     from rtabmap_ros2.sim.simulate import simulate
 
     if not (out / "ground_truth.txt").is_file():
-        print(f"simulating issue 50's recording in {out} (2 sessions, raw images, 2 Hz)", flush=True)
-        simulate(out, sessions=2, seed=RECORDING_SEED, raw_images=True, frame_rate_hz=RECORDING_FRAME_RATE_HZ,
+        print(f"simulating issue 50's recording in {out} (2 sessions, raw images, 2 Hz, seed {seed})", flush=True)
+        simulate(out, sessions=2, seed=seed, raw_images=True, frame_rate_hz=RECORDING_FRAME_RATE_HZ,
                  laser_mount=LASER_MOUNT, camera_mount=CAMERA_MOUNT, tf_static=False)
     return [out / "session_1", out / "session_2"]
 
@@ -451,6 +451,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--recording", action="store_true", help="section 4 only (issue 50's input)")
     parser.add_argument("--recording-dir", type=Path, default=None,
                         help="section 4's bags (simulated there when missing; default: a temporary folder)")
+    parser.add_argument("--recording-seed", type=int, default=RECORDING_SEED,
+                        help=f"section 4's building and drive (default {RECORDING_SEED}; another seed: a recording "
+                             "the node was never run on, written under its own key)")
     args = parser.parse_args(argv)
 
     old = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
@@ -460,7 +463,9 @@ def main(argv: list[str] | None = None) -> int:
         runs = []
         with tempfile.TemporaryDirectory() as tmp:
             folder = args.recording_dir or Path(tmp)
-            bags = make_recording(folder)
+            bags = make_recording(folder, args.recording_seed)
+            key = "recording_2hz_raw" + ("" if args.recording_seed == RECORDING_SEED
+                                         else f"_seed{args.recording_seed}")
             one_hz = frames_at_detection_rate(bags)
             print(f"1 Hz frames of the bags (what map makes of them): {one_hz}", flush=True)
             for rate in args.rates:
@@ -468,7 +473,7 @@ def main(argv: list[str] | None = None) -> int:
                 if r is not None:
                     runs.append(r)
                     _print_recording(r)
-                    RESULTS.write_text(json.dumps({**old, "recording_2hz_raw": runs}, indent=2))
+                    RESULTS.write_text(json.dumps({**old, key: runs}, indent=2))
         print(f"wrote {RESULTS}")
         return 0
     if args.two_sessions_only:
