@@ -711,9 +711,12 @@ def main() -> int:
     ours_runs = _runs_per_set("--ours-runs", args.ours_runs, parser)
     our_jobs = [(ds, label, run) for ds, label in jobs
                 for run in range(1, (ours_runs.get(ds.name, ours_runs[None]) if seeded(label) else 1) + 1)]
+    reference = lambda job: run_reference(job[0], args.data, args.rerun_reference, job[1], job[2])  # noqa: E731
+    # The reference installs its runtime libraries (apt) on first use: its first run alone, else
+    # concurrent runs fail on apt's lock (exit 100) on a fresh machine.
+    ref_outs = [reference(ref_jobs[0])] if ref_jobs else []
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        ref_outs = list(pool.map(lambda job: run_reference(job[0], args.data, args.rerun_reference, job[1], job[2]),
-                                 ref_jobs))
+        ref_outs += list(pool.map(reference, ref_jobs[1:]))
         our_outs = list(pool.map(lambda job: run_ours(job[0], job[1], ours_options(job[1]), args.data, args.rerun, job[2]),
                                  our_jobs))
     refs: dict = {}
