@@ -551,8 +551,8 @@ def _levenberg_marquardt_then_dogleg(graph, initial, iterations: int):
         error = new_error
         # A success divides the damping by gtsam's factor, a failure multiplies it: it ends no lower
         # than it began only when a factorisation was spent on a failed damping. Counted only while
-        # the damping is above where it started (LM_DAMPED): a near Gauss-Newton step failing once
-        # a damping of 1e-10 repairs is LM converging, not LM stalled.
+        # the damping is at or above where it started (LM_DAMPED): a near Gauss-Newton step failing
+        # once, repaired by a damping of 1e-10, is LM converging, not LM stalled.
         damped = lm.lambda_() >= LM_DAMPED * lambda_initial
         failing = failing + 1 if lm.lambda_() >= damping and damped else 0
         if failing >= LM_FAILING_ITERATIONS and lm.iterations() < iterations:
