@@ -711,7 +711,9 @@ def main() -> int:
     ours_runs = _runs_per_set("--ours-runs", args.ours_runs, parser)
     our_jobs = [(ds, label, run) for ds, label in jobs
                 for run in range(1, (ours_runs.get(ds.name, ours_runs[None]) if seeded(label) else 1) + 1)]
-    reference = lambda job: run_reference(job[0], args.data, args.rerun_reference, job[1], job[2])  # noqa: E731
+    def reference(job):
+        return run_reference(job[0], args.data, args.rerun_reference, job[1], job[2])
+
     # The reference installs its runtime libraries (apt) on first use: its first run alone, else
     # concurrent runs fail on apt's lock (exit 100) on a fresh machine.
     ref_outs = [reference(ref_jobs[0])] if ref_jobs else []

@@ -143,8 +143,7 @@ def _start_file(name: str, folder: Path) -> Path:
         path = folder / f"{name.removeprefix('gtsam:')}.g2o"
         write_g2o(path, poses, links, planar)
         return path
-    base = name.removesuffix("-indefinite")
-    src = DATA / f"{base}.g2o"
+    src = _source(name)
     lines = src.read_text().splitlines()
     has_vertices = any(line.startswith("VERTEX") for line in lines)
     if has_vertices and not name.endswith("-indefinite"):

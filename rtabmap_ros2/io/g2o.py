@@ -154,8 +154,9 @@ def read_g2o(path) -> tuple[dict[int, np.ndarray], list[Link], bool]:
             edges.append((numbers, ids, transforms.from_xyz_rpys(v[:, :6]), v[:, 6:]))
     dim = 3 if planar else 6
     if edges:
-        order = np.argsort(np.concatenate([e[0] for e in edges]), kind="stable")   # the file's order
-        edge_numbers = np.concatenate([e[0] for e in edges])[order].tolist()
+        all_numbers = np.concatenate([e[0] for e in edges])
+        order = np.argsort(all_numbers, kind="stable")   # the file's order
+        edge_numbers = all_numbers[order].tolist()
         ids = np.concatenate([e[1] for e in edges])[order]
         steps = np.concatenate([e[2] for e in edges])[order]
         upper = np.concatenate([e[3] for e in edges])[order]
@@ -341,8 +342,7 @@ def write_optimised(src, path, poses: dict[int, np.ndarray], planar: bool, links
     except (OSError, UnicodeDecodeError) as exc:
         raise OptimizationError(f"cannot read g2o file {src} again to write {path}: {exc}") from exc
     own_edge_tag = "EDGE_SE2" if planar else "EDGE_SE3:QUAT"
-    toro = any(line.startswith(("EDGE2", "EDGE3")) for line in lines)
-    as_g2o = _edge_lines(links, planar) if toro else []   # all at once: one at a time was 6 s on 64,311 edges
+    as_g2o = None   # every link as g2o's line, made at the first TORO edge (one at a time: 6 s on 64,311 edges)
     out = _vertex_lines(poses, planar)
     edge = 0
     for line in lines:
@@ -355,6 +355,7 @@ def write_optimised(src, path, poses: dict[int, np.ndarray], planar: bool, links
             if edge > len(links) or kept is not None and not (edge <= len(kept) and kept[edge - 1]):
                 continue
             if tag != own_edge_tag:
+                as_g2o = _edge_lines(links, planar) if as_g2o is None else as_g2o
                 line = as_g2o[edge - 1]
         out.append(line)
     if edge != len(links) or kept is not None and edge != len(kept):
