@@ -218,3 +218,11 @@ def test_a_toro_file_is_written_back_as_g2o(tmp_path):
     for a, b in zip(written, [links[0], links[2]]):
         assert (a.from_id, a.to_id) == (b.from_id, b.to_id)
         assert np.allclose(a.information, b.information) and np.allclose(a.T_from_to, b.T_from_to, atol=1e-8)
+
+
+@pytest.mark.parametrize("line", ["EQUIV 1", "EQUIV 1 x", "EQUIV", "EQUIV 1 2 3"])
+def test_a_malformed_equiv_line_is_named(tmp_path, line):
+    path = tmp_path / "bad.graph"
+    path.write_text(f"VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\nEDGE2 0 1 1 0 0 1 0 1 1 0 0\n{line}\n")
+    with pytest.raises(OptimizationError, match=r"bad.graph:4: .*EQUIV needs two vertex ids"):
+        read_g2o(path)
