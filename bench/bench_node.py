@@ -91,7 +91,35 @@ def bench_conversion(repeats: int) -> dict[str, dict[str, float]]:
     rgb_msg = conv.image_to_msg(rgb, 0, "camera")
     out["baseline np.array(list(data)) rgb8"] = _timed(
         lambda: np.array(list(rgb_msg.data), dtype=np.uint8).reshape(HEIGHT, WIDTH, 3), max(3, repeats // 20))
+    out.update(_bench_map_messages(rng, max(3, repeats // 20)))
     return out
+
+
+def _bench_map_messages(rng, repeats: int, nodes: int = 1700, loop_closures: int = 350) -> dict:
+    """mapPath and mapGraph of a local map the size of the simulator's five sessions (1,700 nodes,
+    ~2,000 links), against the path made one pose at a time (pose_to_msg per node, as before)."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path as PathMsg
+
+    from rtabmap_ros2.core import transforms
+    from rtabmap_ros2.core.graph import Link, LinkType
+    from rtabmap_ros2.ros import conversions as conv
+
+    poses = {i: transforms.from_xyz_rpy([*rng.normal(0, 10, 2), 0.0, 0.0, 0.0, rng.uniform(-np.pi, np.pi)])
+             for i in range(1, nodes + 1)}
+    links = [Link(i, i + 1, LinkType.NEIGHBOR) for i in range(1, nodes)]
+    links += [Link(int(a), int(b), LinkType.LOOP_INTER) for a, b in rng.integers(1, nodes + 1, (loop_closures, 2))]
+
+    def one_pose_at_a_time():
+        hdr = conv.header(0, "map")
+        msg = PathMsg(header=hdr)
+        msg.poses = [PoseStamped(header=hdr, pose=conv.pose_to_msg(poses[i])) for i in sorted(poses)]
+        return msg
+
+    return {f"to_msg mapPath {nodes} poses": _timed(lambda: conv.path_to_msg(poses, 0, "map"), repeats),
+            "baseline mapPath one pose at a time": _timed(one_pose_at_a_time, repeats),
+            f"to_msg mapGraph {nodes} nodes {len(links)} links": _timed(
+                lambda: conv.graph_to_markers(poses, links, 0, "map"), repeats)}
 
 
 @contextmanager

@@ -243,6 +243,19 @@ def test_path_is_ordered_by_id(random_se3):
         np.testing.assert_allclose(T, poses[i], atol=1e-12)
 
 
+def test_path_poses_equal_the_single_pose_message_on_every_quaternion_branch(random_se3):
+    """path_to_msg computes all quaternions at once: each pose message equals pose_to_msg's, on
+    rotations of every branch of the conversion (trace > 0, and 180 deg about x, y and z, where
+    the largest diagonal term decides), and an empty map is an empty path."""
+    turns = [transforms.from_xyz_rpy([1, 2, 3, np.pi, 0, 0]), transforms.from_xyz_rpy([0, 0, 0, 0, np.pi, 0]),
+             transforms.from_xyz_rpy([-1, 0, 0.5, 0, 0, np.pi]), transforms.from_xyz_rpy([0, 1, 0, 3.0, 0.1, -2.9])]
+    poses = dict(enumerate(turns + [random_se3() for _ in range(20)]))
+    msg = conv.path_to_msg(poses, 11, "map")
+    assert [p.pose for p in msg.poses] == [conv.pose_to_msg(poses[i]) for i in sorted(poses)]
+    assert conv.path_to_msg({}, 11, "map").poses == []
+    assert conv.graph_to_markers({}, [], 0, "map").markers[1].points == []
+
+
 def test_graph_markers_colour_links_by_type():
     poses = {i: transforms.from_xy_yaw(float(i), 0.0, 0.0) for i in (1, 2, 3, 4)}
     links = [Link(1, 2, LinkType.NEIGHBOR), Link(2, 3, LinkType.NEIGHBOR), Link(3, 1, LinkType.LOOP_INTRA),
