@@ -347,8 +347,8 @@ def graph_to_markers(poses: Mapping[int, np.ndarray], links: Iterable[Link], sta
     # One Point per node, shared by the node list and its links' line ends (a message is
     # serialised by value): 1,700 nodes and 2,000 links made 5,700 Points, now 1,700.
     ids = sorted(poses)
-    points = dict(zip(ids, (Point(x=x, y=y, z=z) for x, y, z in
-                            (np.stack([poses[i] for i in ids])[:, :3, 3].tolist() if ids else []))))
+    xyz = np.stack([poses[i] for i in ids])[:, :3, 3].tolist() if ids else []
+    points = {i: Point(x=x, y=y, z=z) for i, (x, y, z) in zip(ids, xyz)}
     nodes.points = [points[i] for i in ids]
     markers.append(nodes)
     by_type: dict[LinkType, list[Point]] = {t: [] for t in _LINK_STYLE}
