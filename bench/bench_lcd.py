@@ -12,7 +12,8 @@ Data sets (``--sets``):
 
 * ``lcd``: RTAB-Map's own 84 real images and ground truth (``../shared/data/lcd/rtabmap_samples``);
 * ``ms:SEED``: ``../shared/tools/make_sequence.py --seed SEED --frames N`` (an independent generator
-  of real-photo revisits the reference does well on);
+  of real-photo revisits the reference does well on; ``ms:SEED+lcd`` / ``+lip6``: with a real set's
+  photos among its own, see :func:`prepare`);
 * ``sim:SEED``: ``rtabmap_ros2.sim.sequence`` at that seed (our own; a stress test of perceptual
   aliasing on which the reference itself is imprecise).
 
@@ -70,6 +71,8 @@ DEFAULT_DATA = Path("/tmp/rtabmap_ros2_bench_lcd")
 LCD = SHARED / "data" / "lcd" / "rtabmap_samples"
 LIP6 = SHARED / "data" / "lcd" / "lip6outdoor"
 # The first pass of each real set: their ground truth's loops start at the next image.
+# Real photos make_sequence may place among its own (``ms:...+lcd``): each is then seen at several places.
+REAL_SOURCES = {"lcd": LCD / "images", "lip6": LIP6 / "images"}
 LIP6_FIRST_PASS = 230
 LCD_FIRST_PASS = 40
 IMAGE_SUFFIXES = (".jpg", ".png", ".bmp", ".jpeg")
@@ -78,9 +81,10 @@ SCORE = SHARED / "tools" / "score_lcd.py"
 REFERENCE = SHARED / "reference"
 # Issue 48's generalisation table, real images first: RTAB-Map's 84, Lip6Outdoor, the look-alike set,
 # both resized (upscaled 2x, small), then make_sequence of four characters (640x480, 240x192 like Lip6,
-# every 4th image: low overlap, a long run) and the simulator.
+# every 4th image: low overlap, a long run), two more made of the real sets' photos (each seen at several
+# places the ground truth does not pair: repeated content) and the simulator.
 DEFAULT_SETS = ("lcd", "lip6", "lookalike", "lcd@2", "lip6@2", "lcd@0.5", "ms:31", "ms:7:240x192#2000",
-                "ms:5/4#6000", "ms:44", "sim:11#1000")
+                "ms:5/4#6000", "ms:44", "ms:301:320x240#1500+lcd", "ms:302#2000+lip6", "sim:11#1000")
 DEFAULT_FRAMES = 3000
 CONFORMANCE = ("--config", str(REPO / "config" / "rtabmap_reference.yaml"))
 # label -> detect options. The defaults and RTAB-Map's defaults (the conformance setting) first; the
@@ -227,8 +231,10 @@ def prepare(spec: str, frames: int, data: Path) -> DataSet:
 
     ``lcd`` (RTAB-Map's 84 real images), ``lip6`` (Lip6Outdoor, 532 real images), ``lookalike`` (see
     :func:`_lookalike`); ``REAL@SCALE`` (a real set resized, e.g. ``lip6@2``, ``lcd@0.5``);
-    ``ms:SEED[:WxH][/STEP][#FRAMES]`` (make_sequence at that seed, image size, every STEP-th image of
-    FRAMES generated); ``sim:SEED[#FRAMES]`` (our simulator's sequence)."""
+    ``ms:SEED[:WxH][/STEP][#FRAMES][+REAL]`` (make_sequence at that seed, image size, every STEP-th image
+    of FRAMES generated; ``+lcd`` / ``+lip6``: with that real set's images among its photos, make_sequence's
+    ``--sources``, so each of them is seen at several places the ground truth does not pair);
+    ``sim:SEED[#FRAMES]`` (our simulator's sequence)."""
     if spec == "lcd":
         return DataSet("lcd", LCD / "images", LCD / "gt.bmp", real=True)
     if spec == "lip6":
@@ -239,7 +245,10 @@ def prepare(spec: str, frames: int, data: Path) -> DataSet:
         source, _, scale = spec.partition("@")
         return _resized(spec, prepare(source, frames, data), float(scale), data)
     spec_frames = frames
-    base, hash_, count = spec.partition("#")
+    spec_base, plus, sources = spec.partition("+")
+    if plus and sources not in REAL_SOURCES:
+        raise SystemExit(f"unknown photo source {sources!r} in {spec!r}: {', '.join(REAL_SOURCES)}")
+    base, hash_, count = spec_base.partition("#")
     if hash_:
         spec_frames = int(count)
     base, slash, step = base.partition("/")
@@ -248,9 +257,14 @@ def prepare(spec: str, frames: int, data: Path) -> DataSet:
     if kind == "ms":
         width, _, height = size.partition("x") if size else ("640", "", "480")
         folder = data / f"ms_{seed}_{spec_frames}" if not size else data / f"ms_{seed}_{width}x{height}_{spec_frames}"
+        extra = ()
+        if plus:
+            folder = folder.with_name(f"{folder.name}_{sources}")
+            extra = ("--sources", str(REAL_SOURCES[sources]))
         if not (folder / "gt.png").exists():
             subprocess.run([sys.executable, str(MAKE_SEQUENCE), "--out", str(folder), "--frames", str(spec_frames),
-                            "--seed", seed, "--width", width, "--height", height], check=True, stdout=subprocess.DEVNULL)
+                            "--seed", seed, "--width", width, "--height", height, *extra], check=True,
+                           stdout=subprocess.DEVNULL)
         ds = DataSet(base, folder / "images", folder / "gt.png")
     elif kind == "sim":
         sys.path.insert(0, str(REPO / "bench"))
@@ -268,7 +282,7 @@ def prepare(spec: str, frames: int, data: Path) -> DataSet:
                 link.symlink_to(sequence / f"{k}.jpg")
         ds = DataSet(base, images, sequence / "ground_truth.png")
     else:
-        raise SystemExit(f"unknown data set {spec!r}: lcd, lip6, lookalike, REAL@SCALE, ms:SEED[:WxH][/STEP][#N], "
+        raise SystemExit(f"unknown data set {spec!r}: lcd, lip6, lookalike, REAL@SCALE, ms:SEED[:WxH][/STEP][#N][+REAL], "
                          "sim:SEED[#N]")
     if slash:
         ds = _subsampled(spec, ds, int(step), data)
