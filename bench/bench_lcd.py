@@ -70,9 +70,9 @@ RESULTS = REPO / "bench" / "results"
 DEFAULT_DATA = Path("/tmp/rtabmap_ros2_bench_lcd")
 LCD = SHARED / "data" / "lcd" / "rtabmap_samples"
 LIP6 = SHARED / "data" / "lcd" / "lip6outdoor"
-# The first pass of each real set: their ground truth's loops start at the next image.
 # Real photos make_sequence may place among its own (``ms:...+lcd``): each is then seen at several places.
 REAL_SOURCES = {"lcd": LCD / "images", "lip6": LIP6 / "images"}
+# The first pass of each real set: their ground truth's loops start at the next image.
 LIP6_FIRST_PASS = 230
 LCD_FIRST_PASS = 40
 IMAGE_SUFFIXES = (".jpg", ".png", ".bmp", ".jpeg")
@@ -266,6 +266,8 @@ def prepare(spec: str, frames: int, data: Path) -> DataSet:
                             "--seed", seed, "--width", width, "--height", height, *extra], check=True,
                            stdout=subprocess.DEVNULL)
         ds = DataSet(base, folder / "images", folder / "gt.png")
+    elif plus:
+        raise SystemExit(f"photo sources ({spec!r}) are make_sequence's: ms:SEED...+{sources}")
     elif kind == "sim":
         sys.path.insert(0, str(REPO / "bench"))
         from bench_detect import ensure_sequence
