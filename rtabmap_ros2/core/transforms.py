@@ -136,23 +136,9 @@ def to_xyz_rpy(T: np.ndarray) -> np.ndarray:
 
 
 def quat_xyzw(T: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of the rotation of a 4x4 transform, with w >= 0."""
-    R = T[:3, :3]
-    tr = np.trace(R)
-    if tr > 0:
-        s = np.sqrt(tr + 1.0) * 2
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2
-        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2
-        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
-    q = np.asarray(q) / np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    """Unit quaternion (x, y, z, w) of the rotation of a 4x4 transform, with w >= 0
+    (:func:`quats_xyzw` of one matrix: one conversion, so a pose and a path of it agree)."""
+    return quats_xyzw(np.asarray(T)[None])[0]
 
 
 def quats_xyzw(T: np.ndarray) -> np.ndarray:
