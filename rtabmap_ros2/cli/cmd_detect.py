@@ -28,7 +28,7 @@ STATUS_OK, STATUS_BAD, STATUS_UNREADABLE, STATUS_REJECTED = "ok", "bad_signature
 
 EPILOG = """\
 outputs (in OUT_DIR):
-  detections.csv  one row per image, in input order (location_id 0: bad signature or unreadable)
+  detections.csv  one row per image, in input order (location_id 0: unreadable or rejected)
   database.db     the long-term memory (an existing OUT_DIR/database.db is DELETED first)
   timing.png      process time per image with the T_time line, WM size on a second axis (Fig. 7)
   params.yaml     the parameters used (the defaults; config/rtabmap.yaml detects alike, with SLAM memory settings)

@@ -181,7 +181,8 @@ class MemoryParams:
         0.20, "T_recent: part of WM after the last loop closure that is protected from transfer", "ratio"
     )
     bad_signature_ratio: float = _p(
-        0.25, "T_bad: a signature with fewer words than T_bad x the average is a bad signature", "ratio"
+        0.25, "T_bad: an image with fewer features than T_bad x the mean words of the locations in WM "
+        "and STM is a bad signature (kept without words)", "ratio"
     )
     time_threshold_ms: float = _p(
         700.0, "T_time: transfer WM -> LTM when the processing time exceeds it (0 = no limit)", "ms"

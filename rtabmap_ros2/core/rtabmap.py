@@ -301,12 +301,11 @@ class Rtabmap:
         memory.next_location_id = node_id + 1
         bad = memory.is_bad_signature(len(features.keypoints))
         stats.bad_signature = bad
-        if bad and frame.T_odom_base is None:
-            # Alg. 1 lines 4-5: a bad signature is deleted (appearance-only mode has no graph
-            # to keep it in; with odometry it stays as a node without words).
-            watch.lap("quantization")
-            return Hypothesis(0, 0.0, 1.0)
         if bad:
+            # A bad signature stays as a location without words (RTAB-Map's Mem/BadSignaturesIgnored
+            # false, rather than Alg. 1 lines 4-5's deletion): it keeps the neighbour chain the
+            # prediction spreads along, counts in the next images' bad-signature mean, and has no
+            # Bayes step (below).
             word_ids = np.zeros(0, np.int64)
             new_words: list[int] = []
             features = self.extractor.empty()

@@ -153,6 +153,9 @@ class Vocabulary:
         # other referenced word has a dict in _shared (never both).
         self._owner = np.zeros(0, np.int64)
         self._shared: dict[int, dict[int, int]] = {}
+        # Word occurrences of every referencing location (RTAB-Map's
+        # VWDictionary::getTotalActiveReferences): the bad-signature test's mean (Memory.is_bad_signature).
+        self.total_references = 0
 
     # ------------------------------------------------------------------ words
     def __len__(self) -> int:
@@ -365,6 +368,7 @@ class Vocabulary:
         """Record that a location contains these words (one entry per occurrence)."""
         location_id = int(location_id)
         words, counts = np.unique(_as_ids(word_ids), return_counts=True)
+        self.total_references += int(counts.sum())
         shared, owner = self._shared, self._owner
         for word, count, row in zip(words.tolist(), counts.tolist(), self._row_of.rows(words).tolist()):
             locations = shared.get(word)
@@ -398,9 +402,11 @@ class Vocabulary:
                 if row >= 0 and owner[row] == location_id:
                     owner[row] = 0
                     orphans.append(word)
+                    self.total_references -= 1
                 continue
             if location_id not in locations:
                 continue
+            self.total_references -= min(count, locations[location_id])
             remaining = locations[location_id] - count
             if remaining > 0:
                 locations[location_id] = remaining

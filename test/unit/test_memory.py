@@ -25,12 +25,13 @@ def make_memory(tmp_path, **memory_overrides) -> Memory:
 
 
 def add(memory: Memory, node_id: int, descriptors: np.ndarray) -> int:
-    """One frame of Alg. 1 (quantise, STM insertion, rehearsal, STM -> WM, commit); returns merged id."""
+    """One frame of Alg. 1 (quantise, STM insertion, rehearsal, STM -> WM, commit); returns merged id.
+    No descriptors: a bad signature, kept without words."""
     before = memory.vocabulary.next_word_id
     word_ids = memory.quantize(descriptors)
     sig = Signature(id=node_id, map_id=memory.map_id, stamp_ns=node_id, word_ids=word_ids,
                     keypoints=np.zeros((len(word_ids), 2), np.float32),
-                    points3d=np.full((len(word_ids), 3), np.nan, np.float32))
+                    points3d=np.full((len(word_ids), 3), np.nan, np.float32), bad=len(word_ids) == 0)
     previous = memory.last_location()
     memory.add_location(sig, None, Link(previous.id, node_id, LinkType.NEIGHBOR) if previous else None)
     merged, _ = memory.rehearse(sig, [w for w in word_ids.tolist() if w >= before])
@@ -169,12 +170,25 @@ def test_local_retrieval_takes_ltm_links_of_the_nearest_nodes_first_then_their_n
     assert memory.retrieve([5, 3, 4]) == []  # already in WM: nothing to load
 
 
-def test_bad_signature_threshold_follows_the_average(tmp_path):
-    memory = make_memory(tmp_path)
-    assert not memory.is_bad_signature(400)
-    assert not memory.is_bad_signature(380)
-    assert memory.is_bad_signature(60)  # < 0.25 x average
-    assert memory.is_bad_signature(0)
+def test_bad_signature_threshold_is_rtabmaps_mean_over_the_locations_held(tmp_path, descriptors):
+    """RTAB-Map's Memory::createSignature: bad below Kp/BadSignRatio x (word occurrences of the
+    locations in WM and STM // their number), bad ones counted without words; none held, only an
+    image without features is bad."""
+    memory = make_memory(tmp_path, bad_signature_ratio=0.5)
+    assert memory.is_bad_signature(0) and not memory.is_bad_signature(1)
+    add(memory, 1, descriptors())
+    add(memory, 2, descriptors())
+    assert memory.vocabulary.total_references == 2 * WORDS
+    assert memory.is_bad_signature(WORDS // 2 - 1) and not memory.is_bad_signature(WORDS // 2)
+    # Two bad signatures held without words halve the mean: 100 occurrences over 4 locations.
+    add(memory, 3, descriptors()[:0])
+    add(memory, 4, descriptors()[:0])
+    assert memory.is_bad_signature(12) and not memory.is_bad_signature(13)  # 0.5 x (100 // 4)
+    # A location merged by rehearsal leaves the count with its words.
+    view = descriptors()
+    add(memory, 5, view)
+    assert add(memory, 6, view) == 6
+    assert memory.vocabulary.total_references == sum(len(sig.word_ids) for sig in memory.signatures.values()) == 3 * WORDS
 
 
 def test_merged_location_leaves_no_link_in_the_database(tmp_path, descriptors):

@@ -121,16 +121,23 @@ def test_rehearsal_merges_identical_consecutive_frames(tmp_path):
     assert 2 not in nodes and 3 not in nodes and nodes[1].weight == 2
 
 
-def test_bad_signature_gives_location_zero_in_appearance_mode(tmp_path):
-    sequence = make_sequence(3, seed=1)
+def test_bad_signature_stays_a_location_without_words_and_without_a_bayes_step(tmp_path):
+    """RTAB-Map's Mem/BadSignaturesIgnored false: the bad image is a word-less location between its
+    neighbours (the chain the prediction spreads along), never a hypothesis, and its frame has no
+    Bayes step."""
+    sequence = make_sequence(4, seed=1)
     grey = np.full((480, 640, 3), 128, np.uint8)
-    with Rtabmap(Params(), tmp_path / "m.db") as rtabmap:
+    with Rtabmap(Params().with_overrides(["memory.stm_size=1"]), tmp_path / "m.db") as rtabmap:
         first = rtabmap.process(frame(sequence.image(0), 1), location_id=1)
         bad = rtabmap.process(frame(grey, 2), location_id=2)
-        after = rtabmap.process(frame(sequence.image(2), 3), location_id=3)
-        assert first.location_id == 1 and after.location_id == 3
-        assert bad.location_id == 0 and bad.bad_signature
-        assert 2 not in rtabmap.memory.graph
+        after = [rtabmap.process(frame(sequence.image(k), k + 1), location_id=k + 1) for k in (2, 3)]
+        assert [s.location_id for s in [first, bad] + after] == [1, 2, 3, 4]
+        assert bad.bad_signature and not any(s.bad_signature for s in [first] + after)
+        assert bad.highest_hypothesis_id == 0 and bad.timings_ms.get("bayes", 0.0) == 0.0
+        memory = rtabmap.memory
+        assert memory.signatures[2].bad and len(memory.signatures[2].word_ids) == 0
+        assert memory.graph.link(1, 2) is not None and memory.graph.link(2, 3) is not None
+        assert 2 in memory.wm and 2 not in memory.hypothesis_ids().tolist()
 
 
 @pytest.mark.slow
