@@ -168,6 +168,9 @@ def test_local_retrieval_takes_ltm_links_of_the_nearest_nodes_first_then_their_n
     assert memory.local_retrieval_candidates([4], limit=0) == []
     assert memory.retrieve([5, 3]) == [5, 3]
     assert memory.retrieve([5, 3, 4]) == []  # already in WM: nothing to load
+    # The bad-signature mean's count follows the locations held through transfer and retrieval.
+    held = sum(len(sig.word_ids) for sig in memory.signatures.values())
+    assert memory.vocabulary.total_references == held == len(memory.signatures) * WORDS
 
 
 def test_bad_signature_threshold_is_rtabmaps_mean_over_the_locations_held(tmp_path, descriptors):
