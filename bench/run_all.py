@@ -164,6 +164,23 @@ def topic_section(name: str, data) -> list[str]:
     return lines
 
 
+def _written(path: Path, data) -> str:
+    """When a result was written: its own ``written`` field, else the time of the last commit of
+    the file when it is unchanged since (a checkout sets every file's mtime to the clone's time),
+    else the file's mtime."""
+    if isinstance(data, dict) and isinstance(data.get("written"), str):
+        return data["written"]
+    git = ["git", "-C", str(path.parent)]
+    try:
+        unchanged = subprocess.run([*git, "diff", "--quiet", "HEAD", "--", path.name], capture_output=True).returncode == 0
+        stamp = subprocess.run([*git, "log", "-1", "--format=%ct", "--", path.name],
+                               capture_output=True, text=True).stdout.strip() if unchanged else ""
+    except OSError:  # no git
+        stamp = ""
+    seconds = int(stamp) if stamp else path.stat().st_mtime
+    return f"{datetime.fromtimestamp(seconds, timezone.utc):%Y-%m-%d %H:%M} UTC"
+
+
 def write_summary(records: list[dict] | None = None) -> Path:
     """``summary.md`` from every ``results/*.json`` (and the run records, if any)."""
     if records is None and RUN_RECORD.is_file():
@@ -191,10 +208,10 @@ def write_summary(records: list[dict] | None = None) -> Path:
         except (OSError, ValueError) as exc:
             lines += [f"## {name}", "", f"unreadable: {exc}", ""]
             continue
-        written = datetime.fromtimestamp(path.stat().st_mtime, timezone.utc)
+        written = _written(path, data)
         status = by_topic.get(name, {}).get("status")
         note = f"; last run: {status}" if status else ""
-        lines += [f"## {name}", "", f"`bench/results/{path.name}`, written {written:%Y-%m-%d %H:%M} UTC{note}.", ""]
+        lines += [f"## {name}", "", f"`bench/results/{path.name}`, written {written}{note}.", ""]
         lines += topic_section(name, data) + [""]
     SUMMARY.write_text("\n".join(lines))
     return SUMMARY

@@ -169,3 +169,29 @@ def test_the_local_mapper_is_what_loop_validation_reads_of_the_local_map(tmp_pat
         mapper = LocalMapper(Params(), memory)
         assert not [name for name in members if not hasattr(mapper, name)]
         memory.close()
+
+
+def test_summary_dates_a_result_by_its_own_field_else_its_last_commit_not_the_checkout(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    from datetime import datetime, timezone
+    sys.path.insert(0, str(ROOT / "bench"))
+    from run_all import _written
+
+    git = ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    dated, undated = tmp_path / "dated.json", tmp_path / "undated.json"
+    dated.write_text(json.dumps({"written": "2026-01-02 03:04 UTC"}))
+    undated.write_text("{}")
+    subprocess.run([*git, "add", "."], check=True)
+    env = {**os.environ, "GIT_COMMITTER_DATE": "2026-02-03T04:05:00+00:00"}
+    subprocess.run([*git, "commit", "-q", "-m", "results"], check=True, env=env)
+    os.utime(undated, (0, 0))   # a checkout's mtime: not when the result was written
+    assert _written(dated, {"written": "2026-01-02 03:04 UTC"}) == "2026-01-02 03:04 UTC"
+    assert _written(undated, {}) == "2026-02-03 04:05 UTC"
+    undated.write_text('{"a": 1}')   # changed since its commit: the file's own time
+    now = datetime.now(timezone.utc)
+    assert abs((datetime.strptime(_written(undated, {"a": 1}), "%Y-%m-%d %H:%M UTC").replace(tzinfo=timezone.utc)
+                - now).total_seconds()) < 120
