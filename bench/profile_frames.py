@@ -13,12 +13,20 @@ Thread time leaves out the time a frame waits (the database writer thread, the i
 the totals are below ``map --stats``' wall-clock process_time_ms (``bench_slam.py`` measures that).
 
     python3 bench/profile_frames.py --seed 9
+    python3 bench/profile_frames.py --gil   # only: does another thread run while gtsam solves?
+
+``--gil`` measures whether a loop closure frame's optimisation could overlap the next frame's work
+in a thread: a pose graph like the local map's is solved by gtsam while a second Python thread
+counts, and the count it reaches is compared with the same thread's count alone (1: gtsam releases
+the interpreter lock; 0: the thread waits for the whole solve). Written under ``gtsam_gil`` in
+``--out``, the rest of the file kept.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import importlib.metadata
 import json
 import platform
 import sys
@@ -149,12 +157,63 @@ def summarise(frames: list[dict]) -> dict:
             "total_p95_ms": p95, "accepted_over_other_p95": p95.get("accepted", float("nan")) / p95["other"]}
 
 
+def gtsam_gil(nodes: int = 3000, seconds: float = 0.5) -> dict:
+    """Another Python thread's progress while gtsam solves a ``nodes``-pose graph (chain + loop
+    closures every 10 poses, Levenberg-Marquardt), as a fraction of its progress alone."""
+    import gtsam
+
+    rng = np.random.default_rng(0)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.1)
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), noise))
+    step, loop = gtsam.Pose3(gtsam.Rot3.Yaw(0.01), np.array([1.0, 0, 0])), gtsam.Pose3(gtsam.Rot3(), np.array([50.0, 0, 0]))
+    for i in range(nodes):
+        values.insert(i, gtsam.Pose3(gtsam.Rot3.Ypr(*rng.normal(0, 0.1, 3)), rng.normal(0, 1, 3)))
+        if i:
+            graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
+        if i > 50 and i % 10 == 0:
+            graph.add(gtsam.BetweenFactorPose3(i - 50, i, loop, noise))
+
+    def counted(work) -> tuple[float, float]:
+        """(counts per second of a spinning thread, seconds) while ``work`` runs."""
+        stop, count = threading.Event(), [0]
+
+        def spin() -> None:
+            while not stop.is_set():
+                count[0] += 1
+
+        thread = threading.Thread(target=spin)
+        thread.start()
+        start = time.perf_counter()
+        work()
+        elapsed = time.perf_counter() - start
+        stop.set()
+        thread.join()
+        return count[0] / elapsed, elapsed
+
+    alone, _ = counted(lambda: time.sleep(seconds))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(20)
+    during, solve_s = counted(lambda: gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize())
+    return {"poses": nodes, "solve_ms": solve_s * 1e3, "other_thread_progress": during / alone,
+            "gtsam": importlib.metadata.version("gtsam")}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seed", type=int, default=9, help="simulator seed (bench_slam's data of that seed)")
     parser.add_argument("--data", type=Path, help="sessions folder instead of the seed's")
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "frame_parts.json")
+    parser.add_argument("--gil", action="store_true", help="only measure whether gtsam lets other threads run")
     args = parser.parse_args(argv)
+    if args.gil:
+        gil = gtsam_gil()
+        print(f"gtsam {gil['gtsam']} solving {gil['poses']} poses ({gil['solve_ms']:.0f} ms): another Python thread "
+              f"ran at {gil['other_thread_progress']:.2f} of its speed alone")
+        previous = json.loads(args.out.read_text()) if args.out.exists() else {}
+        args.out.write_text(json.dumps({**previous, "gtsam_gil": {
+            **gil, "written": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}}, indent=1))
+        return 0
     from bench_slam import ensure_data
 
     data = args.data or ensure_data(REPO / "bench" / "data" / ("sim5" if args.seed == 0 else f"sim5_seed{args.seed}"),
