@@ -387,16 +387,15 @@ def images_floor(rows: list[dict]) -> dict:
     the new image, new depth into the old): medians against the motion capture, pairs within the
     yardstick (OFF_CM / OFF_DEG) either way, and pairs whose rotation is within issue 49's median
     target (IMAGES_MEDIAN_DEG) either way: a median of that over 18 accepted pairs needs 9 of them."""
-    def near(r: dict, cm: float, deg: float) -> bool:
-        return r["translation_error_cm"] <= cm and r["rotation_error_deg"] <= deg
+    def within(r: dict) -> bool:
+        return r["translation_error_cm"] <= OFF_CM and r["rotation_error_deg"] <= OFF_DEG
 
     out = {}
     for name, field in (("", "images_vs_truth"), ("reverse_", "images_reverse_vs_truth")):
         out[f"{name}median_cm"] = float(np.median([r[field]["translation_error_cm"] for r in rows]))
         out[f"{name}median_deg"] = float(np.median([r[field]["rotation_error_deg"] for r in rows]))
-        out[f"{name}within"] = sum(1 for r in rows if near(r[field], OFF_CM, OFF_DEG))
-    out["within_either"] = sum(1 for r in rows if near(r["images_vs_truth"], OFF_CM, OFF_DEG)
-                               or near(r["images_reverse_vs_truth"], OFF_CM, OFF_DEG))
+        out[f"{name}within"] = sum(1 for r in rows if within(r[field]))
+    out["within_either"] = sum(1 for r in rows if within(r["images_vs_truth"]) or within(r["images_reverse_vs_truth"]))
     out["rotation_within_median_target_either"] = sum(
         1 for r in rows if min(r["images_vs_truth"]["rotation_error_deg"],
                                r["images_reverse_vs_truth"]["rotation_error_deg"]) <= IMAGES_MEDIAN_DEG)
