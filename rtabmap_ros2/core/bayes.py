@@ -145,7 +145,7 @@ class BayesFilter:
         self._kept = kept
         self.transitions = TransitionModel(params, graph, kept)
         self.posterior: dict[int, float] = {NEW_LOCATION: 1.0}
-        # The last frame's likelihood (see highest()).
+        # The last frame's likelihood (bench/bench_transition.py reads it).
         self.observation: dict[int, float] = {}
 
     def reset(self) -> None:
@@ -237,22 +237,7 @@ class BayesFilter:
             if loc != NEW_LOCATION and (prob > best_p or (prob == best_p and prob > 0.0 and loc > best_id)):
                 best_id, best_p = loc, prob
         p_new = self.posterior.get(NEW_LOCATION, 1.0)
-        if best_id and self.params.hypothesis_hops > 0:
-            best_id = self._best_observed_near(best_id)
         return Hypothesis(best_id, 1.0 - p_new if best_id else 0.0, p_new)
-
-    def _best_observed_near(self, peak: int) -> int:
-        """The hypothesis at most ``hypothesis_hops`` neighbour links from the posterior's ``peak``
-        (along its trajectory, through the nodes in memory) whose likelihood this frame is highest;
-        ``peak`` on ties. The value compared with T_loop does not change (it is 1 - p(S_t = -1))."""
-        observation = self.observation
-        best, best_like = peak, observation.get(peak, 1.0)
-        near = self._graph.hops_from(peak, self.params.hypothesis_hops, (LinkType.NEIGHBOR,), allowed=self._kept)
-        for node in near:
-            like = observation.get(node, 1.0)
-            if like > best_like and node in self.posterior:
-                best, best_like = node, like
-        return best
 
     def accepted(self, hypothesis: Hypothesis, previous_value: float = 0.0) -> bool:
         """A loop closure when the hypothesis reaches T_loop and is not the only one in WM, and,

@@ -42,21 +42,6 @@ ORB_N_LEVELS = 3
 ORB_EDGE_THRESHOLD_PX = 19
 ORB_PATCH_SIZE_PX = 31
 ORB_FAST_THRESHOLD = 20
-# Roll normalisation (features.roll_normalization, not in RTAB-Map): a hand-held camera rolls, and ORB's
-# descriptor steered upright (GFTT/ORB's keypoints have no orientation) tolerates about 10 degrees of
-# in-plane rotation. The image's roll is read from its edges: the gradient orientations modulo 90 degrees
-# (walls, doors, windows, kerbs are vertical and horizontal), weighted by magnitude, in 1-degree bins
-# circularly smoothed; their peak is the roll. It is undone (the image rotated back before detection)
-# when it is at least ROLL_MIN_DEG (less is within the descriptor's tolerance), at most ROLL_MAX_DEG
-# (a camera held by hand or on a robot rolls less; near 45 degrees the estimate modulo 90 is ambiguous)
-# and the peak stands ROLL_MIN_PEAK_RATIO times above the histogram's mean (an image without dominant
-# edges, grass or gravel, gives no reliable roll). Estimated at ROLL_ESTIMATE_WIDTH_PX wide at most.
-ROLL_MIN_DEG = 5.0
-ROLL_MAX_DEG = 30.0
-ROLL_MIN_PEAK_RATIO = 1.5
-ROLL_ESTIMATE_WIDTH_PX = 320
-ROLL_BLUR_SIGMA_PX = 1.0
-_ROLL_SMOOTHING = np.array([1.0, 2.0, 3.0, 2.0, 1.0]) / 9.0
 # ORB needs a number of features; "all" (max_features = 0) is this many.
 ORB_ALL_FEATURES = 100_000
 ORB_DESCRIPTOR_BYTES = 32
@@ -104,34 +89,6 @@ def to_gray(image: np.ndarray) -> np.ndarray:
     if gray.shape[0] == 0 or gray.shape[1] == 0:
         raise SensorDataError(f"image shape is {image.shape}: the image is empty")
     return gray
-
-
-def estimate_roll(gray: np.ndarray) -> tuple[float, float]:
-    """The camera's roll read from an image's edges (see :data:`ROLL_MIN_DEG`).
-
-    Args:
-        gray: HxW uint8 grey image.
-
-    Returns:
-        ``(roll_deg, peak_ratio)``: the dominant edge orientation modulo 90 degrees in (-45, 45]
-        (the rotation, counter-clockwise as displayed, that :func:`cv2.getRotationMatrix2D` applies to
-        bring the edges upright) and how far its histogram peak stands above the histogram's mean.
-    """
-    if gray.shape[1] > ROLL_ESTIMATE_WIDTH_PX:
-        scale = ROLL_ESTIMATE_WIDTH_PX / gray.shape[1]
-        gray = cv2.resize(gray, (ROLL_ESTIMATE_WIDTH_PX, max(1, round(gray.shape[0] * scale))),
-                          interpolation=cv2.INTER_AREA)
-    blurred = cv2.GaussianBlur(gray, (0, 0), ROLL_BLUR_SIGMA_PX).astype(np.float32)
-    magnitude, angle = cv2.cartToPolar(cv2.Sobel(blurred, cv2.CV_32F, 1, 0), cv2.Sobel(blurred, cv2.CV_32F, 0, 1),
-                                       angleInDegrees=True)
-    bins = np.minimum((angle.ravel() % 90.0).astype(np.int64), 89)
-    histogram = np.bincount(bins, weights=magnitude.ravel(), minlength=90)
-    smoothed = np.convolve(np.r_[histogram[-2:], histogram, histogram[:2]], _ROLL_SMOOTHING, mode="valid")
-    peak = int(np.argmax(smoothed))
-    mean = float(smoothed.mean())
-    ratio = float(smoothed[peak]) / mean if mean > 0.0 else 0.0
-    roll = peak + 0.5
-    return (roll if roll < 45.0 else roll - 90.0), ratio
 
 
 def roi_bounds(width: int, height: int, roi_ratios: tuple[float, float, float, float]) -> tuple[int, int, int, int]:
@@ -198,10 +155,6 @@ class FeatureExtractor:
         in_depth = self._depth_mask(depth_m, gray.shape) if depth_m is not None and uses_depth else None
         if in_depth is not None and params.depth_as_mask:
             mask &= in_depth
-        if params.roll_normalization:
-            roll, ratio = estimate_roll(gray)
-            if ROLL_MIN_DEG <= abs(roll) <= ROLL_MAX_DEG and ratio >= ROLL_MIN_PEAK_RATIO:
-                return self._extract_rotated(gray, mask, roll)
         features = self._extract(gray, mask)
         if in_depth is not None and not params.depth_as_mask:   # the limits, on the features found
             rows = np.clip(np.rint(features.keypoints[:, 1]).astype(np.int64), 0, gray.shape[0] - 1)
@@ -217,21 +170,6 @@ class FeatureExtractor:
         if mask.shape != shape:   # depth registered at another size (same aspect ratio): scaled
             mask = cv2.resize(mask, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST)
         return mask
-
-    def _extract_rotated(self, gray: np.ndarray, mask: np.ndarray, roll_deg: float) -> Features:
-        """Features of the image rotated by ``roll_deg`` about its centre (its edges brought upright),
-        keypoints given back in the image's own pixels."""
-        height, width = gray.shape
-        rotation = cv2.getRotationMatrix2D((width / 2.0, height / 2.0), roll_deg, 1.0)
-        upright = cv2.warpAffine(gray, rotation, (width, height), flags=cv2.INTER_LINEAR, borderValue=0)
-        # Only where the rotated image shows the region of interest, away from the black corners'
-        # edges (a corner detector would fire on them).
-        inside = cv2.warpAffine(mask, rotation, (width, height), flags=cv2.INTER_NEAREST, borderValue=0)
-        inside = cv2.erode(inside, np.ones((2 * GFTT_BLOCK_SIZE_PX + 1,) * 2, np.uint8))
-        features = self._extract(upright, inside)
-        back = cv2.invertAffineTransform(rotation)
-        keypoints = features.keypoints @ back[:, :2].T.astype(np.float32) + back[:, 2].astype(np.float32)
-        return Features(np.ascontiguousarray(keypoints, np.float32), features.descriptors, features.responses)
 
     def _extract(self, gray: np.ndarray, mask: np.ndarray) -> Features:
         if self.params.detector == "gftt_orb":

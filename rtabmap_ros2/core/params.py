@@ -59,17 +59,9 @@ class FeatureParams:
         0.0, "T_response: minimum detector response of a feature (detector-specific scale)"
     )
     gftt_min_distance_px: float = _p(
-        5.0, "gftt_orb: GFTT/MinDistance, the least distance between two corners (RTAB-Map's 7). On small "
-        "images 7 px leaves too few corners: a 240x192 Lip6Outdoor image holds a median 303 at 7 px, the "
-        "T_maxFeatures 400 at 5 px, as 640x480 images do either way. Issue 48's generalisation table "
-        "(bench/bench_lcd.py, docs/benchmarks.md): Lip6Outdoor recall at 100 % precision 0.811 -> 0.851 "
-        "(median of 3 seeds), RTAB-Map's 84 images 0 false loop closures in 3 seeds against 1 in 3", "px")
-    roll_normalization: bool = _p(
-        True, "Not in RTAB-Map: bring an image's edges upright before detection when the camera rolled "
-        "5-30 degrees (a hand-held camera; core/features.py estimate_roll), so that upright descriptors still "
-        "match. Lip6Outdoor's third walk is held rolled 15-25 degrees: recall at 100 % precision 0.761 -> 0.815 "
-        "(upscaled 2x 0.745 -> 0.861), RTAB-Map's 84 images unchanged; worst set make_sequence 240x192, "
-        "precision 0.905 -> 0.895 (issue 48's ablation, bench/bench_lcd.py)")
+        7.0, "gftt_orb: GFTT/MinDistance, the least distance between two corners (RTAB-Map's 7). 5 px lifted "
+        "Lip6Outdoor (240x192: 400 corners instead of ~300) but cost precision where a photo recurs and lost "
+        "make_sequence sets nobody had tuned on; issue 48's rule keeps RTAB-Map's value (docs/benchmarks.md)", "px")
     depth_as_mask: bool = _p(
         False, "With a depth image (SLAM): detect features only where its depth is valid and within "
         "min_depth..max_depth (RTAB-Map's Mem/DepthAsMask, true in RTAB-Map). Not the default here: on the "
@@ -181,7 +173,7 @@ class MemoryParams:
         0.20, "T_recent: part of WM after the last loop closure that is protected from transfer", "ratio"
     )
     bad_signature_ratio: float = _p(
-        0.25, "T_bad: an image with fewer features than T_bad x the mean words of the locations in WM "
+        0.5, "T_bad (RTAB-Map's Kp/BadSignRatio; the 2013 paper's 0.25): an image with fewer features than T_bad x the mean words of the locations in WM "
         "and STM is a bad signature (kept without words)", "ratio"
     )
     time_threshold_ms: float = _p(
@@ -258,15 +250,6 @@ class BayesParams:
         "loop closures left the visits unlinked so the value fell further: recall 0.59 instead of 0.67 on "
         "seed 11; the stale hypotheses it was rejecting are left to epipolar_verification, "
         "bench/bench_detect.py --ablation)", "ratio")
-    hypothesis_hops: int = _p(
-        1, "Not in RTAB-Map (0: its choice, the posterior's peak): the loop closure names the location at most "
-        "this many neighbour links from the posterior's peak, along its trajectory and in memory, with the "
-        "highest likelihood this frame (the peak on ties); the value compared with T_loop does not change. The "
-        "prediction is centred on the last frame's peak, so on a revisit the posterior holds one image behind "
-        "the one the frame shows: on make_sequence every 4th image (ms:5/4), false loop closures within 3 images "
-        "of a ground-truth pair 27-31 a seed -> 20-26 (the reference 18-20), precision 0.901 -> 0.908, recall at "
-        "100 % precision 0.000 -> 0.084 (median of 3 seeds; the reference 0.912 / 0.005); the real sets "
-        "unchanged (issue 48's table, bench/bench_lcd.py)", "hops")
     epipolar_verification: bool = _p(
         False, "RTAB-Map's VhEp/Enabled (off, as RTAB-Map): a hypothesis reaching T_loop is accepted only when the "
         "words found once in both images fit a fundamental matrix (RANSAC) with epipolar_min_matches inliers. "
@@ -297,7 +280,6 @@ class BayesParams:
                "in (0, 1)")
         _check(self.likelihood in ("tf_idf", "eq1"), "bayes.likelihood", self.likelihood, "tf_idf or eq1")
         _check(0.0 <= self.loop_ratio <= 1.0, "bayes.loop_ratio", self.loop_ratio, "in [0, 1]")
-        _check(self.hypothesis_hops >= 0, "bayes.hypothesis_hops", self.hypothesis_hops, ">= 0")
         _check(self.epipolar_min_matches >= 8, "bayes.epipolar_min_matches", self.epipolar_min_matches,
                ">= 8 (a fundamental matrix needs 8 pairs)")
         _check(self.epipolar_max_distance > 0.0, "bayes.epipolar_max_distance", self.epipolar_max_distance, "> 0")
@@ -887,6 +869,11 @@ REMOVED_PARAMETERS: dict[str, str] = {
                           ("align_radius", "the view alignment"),
                           ("discount_repeated_evidence", "the repeated evidence discount"),
                           ("loop_closure_hop", "the loop closure hop; RTAB-Map's neighbourhoods are kept"))},
+    "features.roll_normalization": "not in RTAB-Map, removed in issue 48 (it lifted Lip6Outdoor but lost where a rolled "
+                                   "photo recurs, make_sequence with Lip6's photos, docs/benchmarks.md); delete this key",
+    "bayes.hypothesis_hops": "not in RTAB-Map, removed in issue 48 (no row of the generalisation table on RTAB-Map's "
+                             "detection shows it does not lose; the posterior's peak names the loop closure, as in "
+                             "RTAB-Map): delete this key",
     "features.describable_corners_only": "not in RTAB-Map, removed in issue 48 (with GFTT/MinDistance 5 it gave false "
                                          "loop closures on RTAB-Map's 84 images, docs/benchmarks.md); GFTT keeps the "
                                          "strongest corners of the whole image as RTAB-Map's does: delete this key",

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from rtabmap_ros2.core.bayes import (NEW_LOCATION, NO_STANDOUT_NEW_LIKELIHOOD, BayesFilter, Hypothesis, TransitionModel,
+from rtabmap_ros2.core.bayes import (NEW_LOCATION, NO_STANDOUT_NEW_LIKELIHOOD, BayesFilter, TransitionModel,
                                      likelihood)
 from rtabmap_ros2.core.graph import Graph, Link, LinkType
 from rtabmap_ros2.core.params import BayesParams
@@ -188,7 +188,7 @@ def test_an_exact_tie_of_the_posterior_names_the_newest_location():
     # Two identical images far apart (a place seen twice with nothing to tell them apart) end with
     # the same posterior: RTAB-Map walks the posterior from the highest id and keeps the first
     # strictly greater value, so the newest of them is the hypothesis, whatever the dict's order.
-    bayes = BayesFilter(BayesParams(hypothesis_hops=0), chain(list(range(1, 21))))
+    bayes = BayesFilter(BayesParams(), chain(list(range(1, 21))))
     for ids in (range(1, 21), range(20, 0, -1)):
         bayes.posterior = {NEW_LOCATION: 0.2, **{i: 0.3 if i in (3, 17) else 0.01 for i in ids}}
         assert bayes.highest().location_id == 17
@@ -220,35 +220,3 @@ def test_forgotten_nodes_lose_their_cached_neighbourhood():
         model.neighbourhood(node)
     model.forget([3, 4])
     assert set(model._cache) == {5}
-
-
-def test_hypothesis_hops_names_the_next_image_the_posterior_lags_behind():
-    """A revisit moving on from location 10 to 11: the prediction is centred on the last frame's
-    peak (10), so the posterior stays there while this image already looks most like 11.
-    bayes.hypothesis_hops 1 names 11, with the same value compared with T_loop."""
-    ids = np.arange(1, 31)
-
-    def last_hypothesis(hops: int) -> Hypothesis:
-        bayes = BayesFilter(BayesParams(hypothesis_hops=hops), chain(ids.tolist()))
-        scores = {int(i): 0.05 for i in ids}
-        scores[10] = 0.6
-        for _ in range(3):
-            bayes.update(ids, likelihood(scores))
-        scores[10], scores[11] = 0.5, 0.52
-        bayes.update(ids, likelihood(scores))
-        return bayes.highest()
-
-    lagging, named = last_hypothesis(0), last_hypothesis(1)
-    assert lagging.location_id == 10  # the posterior's peak, one image behind
-    assert named.location_id == 11
-    assert named.probability == pytest.approx(lagging.probability)
-
-
-def test_hypothesis_hops_keeps_the_peak_when_it_is_observed_best():
-    ids = np.arange(1, 31)
-    bayes = BayesFilter(BayesParams(hypothesis_hops=1), chain(ids.tolist()))
-    scores = {int(i): 0.05 for i in ids}
-    scores[12], scores[13] = 0.6, 0.3
-    for _ in range(3):
-        bayes.update(ids, likelihood(scores))
-    assert bayes.highest().location_id == 12

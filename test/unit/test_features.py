@@ -125,7 +125,7 @@ def test_real_frame_cap_then_orb_border(real_image):
     image, then ORB drops those it cannot describe (its 19 px edge threshold, 23 px with the rotated
     patch): fewer than T_maxFeatures are kept, none in that band (the reference keeps a median 346 of
     400 on the make_sequence images)."""
-    for params in (FeatureParams(), FeatureParams(gftt_min_distance_px=7.0)):
+    for params in (FeatureParams(), FeatureParams(gftt_min_distance_px=5.0)):
         features = FeatureExtractor(params).extract(real_image)
         assert isinstance(features, Features)
         assert 300 < len(features) < params.max_features
@@ -134,19 +134,20 @@ def test_real_frame_cap_then_orb_border(real_image):
 
 
 def test_small_real_image_holds_max_features(shared_data):
-    """A real 240x192 image (Lip6Outdoor): at RTAB-Map's GFTT/MinDistance of 7 px the corners run out
-    before T_maxFeatures; at the default 5 px GFTT finds the 400 (issue 48), still at least that far
-    apart, and ORB describes those outside its border."""
+    """A real 240x192 image (Lip6Outdoor): at RTAB-Map's GFTT/MinDistance of 7 px (the default) the
+    corners run out before T_maxFeatures; at 5 px GFTT finds the 400, still at least that far apart,
+    and ORB describes those outside its border."""
     gray = cv2.imread(str(shared_data / "lcd" / "lip6outdoor" / "images" / "000001.png"), cv2.IMREAD_GRAYSCALE)
     assert gray.shape == (192, 240)
-    sparse = FeatureExtractor(FeatureParams(gftt_min_distance_px=7.0)).extract(gray)
-    features = FeatureExtractor(FeatureParams()).extract(gray)
-    assert len(sparse) < len(features) < FeatureParams().max_features
+    sparse = FeatureExtractor(FeatureParams()).extract(gray)
+    dense_params = FeatureParams(gftt_min_distance_px=5.0)
+    features = FeatureExtractor(dense_params).extract(gray)
+    assert len(sparse) < len(features) < dense_params.max_features
     corners = cv2.GFTTDetector_create(maxCorners=400, qualityLevel=0.001, minDistance=5.0, blockSize=3).detect(gray)
-    assert len(corners) == FeatureParams().max_features
+    assert len(corners) == dense_params.max_features
     gaps = np.linalg.norm(features.keypoints[:, None] - features.keypoints[None], axis=2)
     np.fill_diagonal(gaps, np.inf)
-    assert gaps.min() >= FeatureParams().gftt_min_distance_px - 1e-3
+    assert gaps.min() >= dense_params.gftt_min_distance_px - 1e-3
 
 
 @pytest.mark.parametrize("detector", DETECTORS)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from rtabmap_ros2.core.params import Params, default_config_path
@@ -14,33 +16,43 @@ def test_defaults_are_the_papers_table_i():
     assert p.memory.stm_size == 30
     assert p.memory.rehearsal_similarity == pytest.approx(0.6)  # paper 0.20; RTAB-Map 0.6 (see its doc)
     assert p.memory.recent_wm_ratio == pytest.approx(0.20)
-    assert p.memory.bad_signature_ratio == pytest.approx(0.25)
+    assert p.memory.bad_signature_ratio == pytest.approx(0.5)  # paper 0.25; RTAB-Map's Kp/BadSignRatio
     assert p.memory.time_threshold_ms == pytest.approx(700.0)
     assert p.memory.max_retrieved == 2
     assert p.vocabulary.nndr == pytest.approx(0.8)
     assert p.features.max_features == 400
     assert p.bayes.sigma == pytest.approx(1.6) and p.bayes.neighborhood == 16
     # Hypothesis selection and validation as RTAB-Map's defaults (issues 32 and 48: its epipolar check
-    # off, its virtual place prior, its likelihood, its rehearsal and its approximate word search).
+    # off, its virtual place prior, its likelihood, its rehearsal, its approximate word search and its
+    # features).
     assert p.bayes.loop_ratio == 0.0 and not p.bayes.epipolar_verification
     assert p.bayes.virtual_place_prior == pytest.approx(0.9) and p.bayes.epipolar_min_matches == 8
     assert p.bayes.likelihood == "tf_idf" and p.memory.rehearsal_similarity == pytest.approx(0.6)
     assert p.vocabulary.index == "kdtree"
+    assert p.features.detector == "gftt_orb" and p.features.gftt_min_distance_px == pytest.approx(7.0)
+
+
+def test_defaults_are_rtabmaps_detection():
+    """Issue 48's rule left none of the defaults' additions: detect's defaults are the conformance
+    setting (config/rtabmap_reference.yaml, RTAB-Map's own values) in every detection section."""
+    reference = Params.from_yaml(Path(__file__).resolve().parents[2] / "config" / "rtabmap_reference.yaml")
+    defaults = Params()
+    for section in ("features", "vocabulary", "memory", "bayes"):
+        assert getattr(defaults, section) == getattr(reference, section), section
 
 
 def test_one_detector_for_detect_map_and_the_node():
     """config/rtabmap.yaml (map, demo, the node) keeps detect's loop closure detection (issue 32) but for
     the values bench_slam.py measured for SLAM (the raw score, RTAB-Map's choice of the posterior's peak,
-    the new words' comparison, the kd-trees' later rebuild swap, RTAB-Map's features without issue 48's
-    two changes)."""
+    the new words' comparison, the kd-trees' later rebuild swap)."""
     from dataclasses import replace
 
     from rtabmap_ros2.core.params import default_config_path
 
     slam, defaults = Params.from_yaml(default_config_path()), Params()
-    assert slam.bayes == replace(defaults.bayes, likelihood="eq1", hypothesis_hops=0)
+    assert slam.bayes == replace(defaults.bayes, likelihood="eq1")
     assert slam.vocabulary == replace(defaults.vocabulary, new_words_compared_together=False, rebuild_swap_frames=300)
-    assert slam.features == replace(defaults.features, roll_normalization=False, gftt_min_distance_px=7.0)
+    assert slam.features == defaults.features
 
 
 @pytest.mark.parametrize("alias, value, section, field, expected", [
@@ -220,11 +232,15 @@ def test_a_database_made_with_a_removed_parameter_still_loads(caplog):
     """Issue 48 removed bayes.likelihood_trim and the other additions: a map made before still
     exports (its stored parameters load, the removed one left out with a warning), while a config
     file naming it gets an error saying what happened."""
-    stored = {"bayes": {"likelihood_trim": 0.5, "loop_threshold": 0.2}, "memory": {"stm_size": 12}}
+    stored = {"bayes": {"likelihood_trim": 0.5, "loop_threshold": 0.2, "hypothesis_hops": 1},
+              "features": {"roll_normalization": True}, "memory": {"stm_size": 12}}
     with caplog.at_level("WARNING"):
         params = Params.from_stored(stored)
     assert params.bayes.loop_threshold == pytest.approx(0.2) and params.memory.stm_size == 12
-    assert "bayes.likelihood_trim" in caplog.text
+    for name in ("bayes.likelihood_trim", "bayes.hypothesis_hops", "features.roll_normalization"):
+        assert name in caplog.text
+        with pytest.raises(ParameterError, match="removed in issue 48"):
+            Params().with_value(name, 0)
     with pytest.raises(ParameterError, match="removed in issue 48"):
         Params.from_mapping(stored)
 
