@@ -87,8 +87,9 @@ DEFAULT_SETS = ("lcd", "lip6", "lookalike", "lcd@2", "lip6@2", "lcd@0.5", "ms:31
                 "ms:5/4#6000", "ms:44", "ms:301:320x240#1500+lcd", "ms:302#2000+lip6", "sim:11#1000")
 DEFAULT_FRAMES = 3000
 CONFORMANCE = ("--config", str(REPO / "config" / "rtabmap_reference.yaml"))
-# label -> detect options. The defaults and RTAB-Map's defaults (the conformance setting) first; the
-# ablation then takes each of the defaults' changes out alone, and tries the alternatives measured.
+# label -> detect options. The defaults and RTAB-Map's defaults (the conformance setting: the same
+# detection since issue 48 removed the defaults' additions; the file pins RTAB-Map's values) first; the
+# ablation then tries the alternatives measured.
 CONFIGS = {
     "defaults": (),
     "conformance": CONFORMANCE,
