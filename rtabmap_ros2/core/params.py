@@ -722,6 +722,10 @@ class Params:
 
     def with_value(self, name: str, value: Any) -> "Params":
         """A copy with one parameter changed; ``name`` may be dotted, an RTAB-Map name or a node name."""
+        if name in REMOVED_AS_DEFAULT and value == REMOVED_AS_DEFAULT[name] and not isinstance(value, str):
+            logging.getLogger(__name__).warning("parameter %s no longer exists; %r is what the code always does now: "
+                                                "ignored (%s)", name, value, REMOVED_PARAMETERS[name])
+            return self
         dotted, value = resolve_name(name, value)
         section_name, field_name = dotted.split(".", 1)
         section = getattr(self, section_name)
@@ -878,6 +882,11 @@ REMOVED_PARAMETERS: dict[str, str] = {
                                          "loop closures on RTAB-Map's 84 images, docs/benchmarks.md); GFTT keeps the "
                                          "strongest corners of the whole image as RTAB-Map's does: delete this key",
 }
+
+
+# Removed parameters whose value here is what the code now always does: a config file written for an older
+# version that sets one of them so (RTAB-Map's behaviour) still loads, with a warning.
+REMOVED_AS_DEFAULT: dict[str, Any] = {"features.roll_normalization": False, "bayes.hypothesis_hops": 0}
 
 
 def known_name(name: str) -> bool:

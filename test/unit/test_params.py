@@ -240,9 +240,20 @@ def test_a_database_made_with_a_removed_parameter_still_loads(caplog):
     for name in ("bayes.likelihood_trim", "bayes.hypothesis_hops", "features.roll_normalization"):
         assert name in caplog.text
         with pytest.raises(ParameterError, match="removed in issue 48"):
-            Params().with_value(name, 0)
+            Params().with_value(name, 1)
     with pytest.raises(ParameterError, match="removed in issue 48"):
         Params.from_mapping(stored)
+
+
+def test_a_config_switching_a_removed_addition_off_still_loads(caplog):
+    """A config written for the version before issue 48's removal, as config/rtabmap_reference.yaml was,
+    sets the additions off: that is what the code now always does, so it loads with a warning."""
+    with caplog.at_level("WARNING"):
+        params = Params.from_mapping({"features": {"roll_normalization": False, "max_features": 300},
+                                      "bayes": {"hypothesis_hops": 0}})
+    assert params.features.max_features == 300 and params.bayes == Params().bayes
+    assert "features.roll_normalization" in caplog.text and "bayes.hypothesis_hops" in caplog.text
+    assert Params().with_overrides(["features.roll_normalization=false"]) == Params()
 
 
 def test_a_config_given_to_map_applies_over_the_shipped_one(tmp_path):
