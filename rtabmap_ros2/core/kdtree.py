@@ -77,6 +77,12 @@ _NODE = np.int32
 # ~5x the CPU it needs. Before: 300 searches whatever the size, reached by 1M-word rebuilds that
 # took 56 s on a loaded machine (load 19), a wait of seconds in one frame.
 SWAP_WORDS_PER_SEARCH = 1000
+# A rebuild of at most this many words (~0.2 s of CPU) is swapped in at the ``swap_searches``-th search
+# (detect's 1: the search of the frame that started it, which waits for it, as RTAB-Map rebuilds in the
+# call that doubled its index), whatever SWAP_WORDS_PER_SEARCH would give it: with the 84 images
+# upscaled 2x the 10k-word rebuild came 11 searches late, over the first revisit, and image 59 closed on
+# 25 in 10 of 15 seeds against 4 of the reference's 15 runs; swapped in at once, 4 of 15 (issue 48).
+IN_TIME_REBUILD_WORDS = 20_000
 # Once the thread has finished, each search replays at most this many logged words (added or
 # removed) into the new trees (~50 us a word inserted in 4 trees): a frame's worth or two, so the
 # replay catches up well before the swap without one search replaying hundreds of frames at once.
@@ -542,8 +548,8 @@ class RandomizedKdTrees:
 
     ``background_rebuild``: when the index has doubled, its rebuild (seconds at a million words: more
     than T_time) runs in a thread on a snapshot of the live words while the current trees keep serving
-    and taking words; the ``max(swap_searches, words / SWAP_WORDS_PER_SEARCH)``-th search after it
-    started swaps the new trees in (waiting for the thread if needed), the words added and removed since replayed into them (from the first
+    and taking words; the ``swap_searches``-th search after it started (past IN_TIME_REBUILD_WORDS
+    words, the ``max(swap_searches, words / SWAP_WORDS_PER_SEARCH)``-th) swaps the new trees in (waiting for the thread if needed), the words added and removed since replayed into them (from the first
     search after the thread finished on, up to REPLAY_WORDS_PER_SEARCH words a search, the rest at
     the swap). The swap point counts searches
     (frames), not time, so the same words give the same answers whatever the machine's load; the
@@ -609,7 +615,9 @@ class RandomizedKdTrees:
 
     def _start_rebuild(self, first: bool) -> None:
         """buildIndex over the live words (cleanRemovedPoints): here, or in a thread (not the first build)."""
-        delay = max(self.swap_searches, -(-self._forest.n_points // SWAP_WORDS_PER_SEARCH))
+        n_points = self._forest.n_points
+        delay = (self.swap_searches if n_points <= IN_TIME_REBUILD_WORDS
+                 else max(self.swap_searches, -(-n_points // SWAP_WORDS_PER_SEARCH)))
         rebuild = _Rebuild(self._forest, self._rng, self._searches + delay)
         if first or not self.background_rebuild:
             rebuild.run()

@@ -123,8 +123,9 @@ class VocabularyParams:
     rebuild_swap_frames: int = _p(
         1,
         "kdtree: the trees are rebuilt when they have doubled (Kp/FlannRebalancingFactor 2), in a background "
-        "thread; the rebuild is swapped in this many frames (searches) after it started, and at least one frame "
-        "per 1,000 words it holds (core/kdtree.py SWAP_WORDS_PER_SEARCH: a 1M-word rebuild takes ~8 s of CPU), "
+        "thread; the rebuild is swapped in this many frames (searches) after it started, and, past 20,000 words "
+        "(core/kdtree.py IN_TIME_REBUILD_WORDS), at least one frame per 1,000 words it holds "
+        "(SWAP_WORDS_PER_SEARCH: a 1M-word rebuild takes ~8 s of CPU), "
         "waiting for it then if needed: the same images give the same words whatever the load. RTAB-Map rebuilds "
         "in the frame; with 300 (before) every new word went into deepened old trees for 300 frames or more, and "
         "sets under 300 images never saw a rebuild: our port of RTAB-Map's setting lost to it on 7 sets of 11, "

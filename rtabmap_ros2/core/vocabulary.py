@@ -13,7 +13,7 @@ The word search (``vocabulary.index``):
   kd-trees over the descriptors' bits, 32 checks; ``core/kdtree.py``). A frame's new words enter
   the trees when the next frame searches, as RTAB-Map's VWDictionary::update; the trees are
   rebuilt when they have doubled, in a background thread swapped in at a fixed search count
-  (``rebuild_swap_frames``, and one search per 1,000 words), as soon after RTAB-Map's rebuild in the
+  (``rebuild_swap_frames``, and past 20,000 words one search per 1,000 words), as soon after RTAB-Map's rebuild in the
   call as a frame's time bound allows; the same images give the same words whatever the load. Binary
   descriptors only: with float ones (``features.detector: sift``) the exact search below is used
   (logged at construction).

@@ -215,6 +215,7 @@ def test_a_large_rebuild_gets_more_searches_and_its_replay_is_spread(rng, monkey
     is done, each search replays at most REPLAY_WORDS_PER_SEARCH logged words, the rest at the swap."""
     monkeypatch.setattr(kdtree, "SWAP_WORDS_PER_SEARCH", 500)
     monkeypatch.setattr(kdtree, "REPLAY_WORDS_PER_SEARCH", 150)
+    monkeypatch.setattr(kdtree, "IN_TIME_REBUILD_WORDS", 1000)
     words = random_binary(rng, 3000)
     trees = RandomizedKdTrees(32, seed=1, background_rebuild=True, swap_searches=2)
     trees.add(words[:1000], np.arange(1000))
@@ -234,3 +235,19 @@ def test_a_large_rebuild_gets_more_searches_and_its_replay_is_spread(rng, monkey
     _, found = trees.search(words)
     assert np.mean(found[:, 0] == np.arange(3000)) > 0.95
 
+
+
+def test_a_small_rebuild_is_swapped_in_when_swap_searches_allow(rng, monkeypatch):
+    """Issue 48: a rebuild of at most IN_TIME_REBUILD_WORDS words comes at the swap_searches-th search
+    (detect's 1: the search of the frame that started it, as RTAB-Map rebuilds in the call that doubled
+    its index), not one search per SWAP_WORDS_PER_SEARCH words later; a larger one still gets those."""
+    monkeypatch.setattr(kdtree, "SWAP_WORDS_PER_SEARCH", 500)
+    words = random_binary(rng, 2500)
+    for limit, delay in ((2500, 1), (2000, 5)):
+        monkeypatch.setattr(kdtree, "IN_TIME_REBUILD_WORDS", limit)
+        trees = RandomizedKdTrees(32, seed=1, background_rebuild=True, swap_searches=1)
+        trees.add(words[:1000], np.arange(1000))
+        trees.add(words[1000:2500], np.arange(1000, 2500))  # 2,500 words: a rebuild
+        assert trees._rebuild.swap_at == trees._searches + delay
+        trees.search(words[:3])
+        assert trees.rebuilding == (delay > 1)
