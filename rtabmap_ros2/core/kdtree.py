@@ -549,10 +549,10 @@ class RandomizedKdTrees:
     ``background_rebuild``: when the index has doubled, its rebuild (seconds at a million words: more
     than T_time) runs in a thread on a snapshot of the live words while the current trees keep serving
     and taking words; the ``swap_searches``-th search after it started (past IN_TIME_REBUILD_WORDS
-    words, the ``max(swap_searches, words / SWAP_WORDS_PER_SEARCH)``-th) swaps the new trees in (waiting for the thread if needed), the words added and removed since replayed into them (from the first
-    search after the thread finished on, up to REPLAY_WORDS_PER_SEARCH words a search, the rest at
-    the swap). The swap point counts searches
-    (frames), not time, so the same words give the same answers whatever the machine's load; the
+    words, the ``max(swap_searches, words / SWAP_WORDS_PER_SEARCH)``-th) swaps the new trees in
+    (waiting for the thread if needed), the words added and removed since replayed into them (from the
+    first search after the thread finished on, up to REPLAY_WORDS_PER_SEARCH words a search, the rest
+    at the swap). The swap point counts searches (frames), not time, so the same words give the same answers whatever the machine's load; the
     answers are those of a rebuild made at the snapshot followed by the same changes. Without it, the
     rebuild happens in the call that doubles the index, as RTAB-Map's."""
 

@@ -174,8 +174,8 @@ class MemoryParams:
         0.20, "T_recent: part of WM after the last loop closure that is protected from transfer", "ratio"
     )
     bad_signature_ratio: float = _p(
-        0.5, "T_bad (RTAB-Map's Kp/BadSignRatio; the 2013 paper's 0.25): an image with fewer features than T_bad x the mean words of the locations in WM "
-        "and STM is a bad signature (kept without words)", "ratio"
+        0.5, "T_bad (RTAB-Map's Kp/BadSignRatio; the 2013 paper's 0.25): an image with fewer features than "
+        "T_bad x the mean words of the locations in WM and STM is a bad signature (kept without words)", "ratio"
     )
     time_threshold_ms: float = _p(
         700.0, "T_time: transfer WM -> LTM when the processing time exceeds it (0 = no limit)", "ms"
@@ -874,8 +874,9 @@ REMOVED_PARAMETERS: dict[str, str] = {
                           ("align_radius", "the view alignment"),
                           ("discount_repeated_evidence", "the repeated evidence discount"),
                           ("loop_closure_hop", "the loop closure hop; RTAB-Map's neighbourhoods are kept"))},
-    "features.roll_normalization": "not in RTAB-Map, removed in issue 48 (it lifted Lip6Outdoor but lost where a rolled "
-                                   "photo recurs, make_sequence with Lip6's photos, docs/benchmarks.md); delete this key",
+    "features.roll_normalization": "not in RTAB-Map, removed in issue 48 (it lifted Lip6Outdoor but lost where a "
+                                   "rolled photo recurs, make_sequence with Lip6's photos, docs/benchmarks.md); "
+                                   "delete this key",
     "bayes.hypothesis_hops": "not in RTAB-Map, removed in issue 48 (no row of the generalisation table on RTAB-Map's "
                              "detection shows it does not lose; the posterior's peak names the loop closure, as in "
                              "RTAB-Map): delete this key",
